@@ -1,0 +1,91 @@
+"""Variant records and the ``register`` decorator (layer 0, so every family can register).
+
+:mod:`rayaccel.registry` (layer 5) loads the built-in modules and looks variants up;
+this module only holds the table, so structure modules can register themselves
+without importing upward.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from rayaccel.errors import InvalidInputError, UnknownVariantError
+
+Role = Literal["builder", "traversal"]
+
+
+@dataclass(frozen=True, slots=True)
+class Variant:
+    """A registered builder or traversal.
+
+    Attributes
+    ----------
+    key : str
+        ``<structure>.<algorithm or method>``.
+    role : {"builder", "traversal"}
+    structure : str
+        The structure the variant builds or traverses (``"bvh2"``).
+    func : callable
+        Builder: ``func(mesh, options) -> structure``. Traversal: see :mod:`rayaccel.api`.
+    options : type
+        Frozen dataclass of keyword options with defaults.
+    summary : str
+        One line for ``rayaccel list``.
+    reference : str
+        The paper it implements.
+    backend : {"cpu", "cuda"}
+    """
+
+    key: str
+    role: Role
+    structure: str
+    func: Callable[..., Any]
+    options: type
+    summary: str
+    reference: str = ""
+    backend: Literal["cpu", "cuda"] = "cpu"
+
+    def make_options(self, values: Mapping[str, Any] | None = None) -> Any:
+        """Return ``options(**values)``; unknown names raise with a suggestion."""
+        values = dict(values or {})
+        names = [f.name for f in dataclasses.fields(self.options)]
+        for name in values:
+            if name not in names:
+                close = difflib.get_close_matches(name, names, n=3)
+                hint = f"; did you mean {', '.join(close)}?" if close else ""
+                known = ", ".join(names) if names else "none"
+                raise UnknownVariantError(
+                    f"{self.key}: unknown option {name!r}{hint} (options: {known})"
+                )
+        try:
+            return self.options(**values)
+        except TypeError as exc:
+            raise InvalidInputError(f"{self.key}: {exc}") from exc
+
+
+REGISTRY: dict[str, Variant] = {}
+
+
+def register(
+    role: Role,
+    key: str,
+    *,
+    options: type,
+    summary: str,
+    reference: str = "",
+    backend: Literal["cpu", "cuda"] = "cpu",
+) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Decorator registering ``func`` as the variant ``key``."""
+    structure = key.split(".", 1)[0]
+
+    def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
+        if key in REGISTRY and REGISTRY[key].func is not func:
+            raise ValueError(f"variant {key!r} registered twice")
+        REGISTRY[key] = Variant(key, role, structure, func, options, summary, reference, backend)
+        return func
+
+    return decorate

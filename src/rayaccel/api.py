@@ -1,0 +1,246 @@
+"""The facade users call: ``build(mesh, key, **options)`` returning an :class:`Accel`.
+
+An :class:`Accel` owns a mesh, the canonical structure a registered builder made
+from it, and a cache of layouts derived from that structure for particular
+traversals (built on first use, counted in ``info()["bytes"]``). Queries name a
+registered traversal by key; extra keywords are that traversal's options::
+
+    accel = rayaccel.build(mesh, "bvh2.binned_sah", max_leaf_size=4)
+    hits = accel.intersect(origins, directions, stats=True)
+    blocked = accel.occluded(origins, directions, tmin=1e-4, tmax=1.0)
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from rayaccel import config, registry
+from rayaccel.dtypes import BoolArray
+from rayaccel.errors import InvalidInputError
+from rayaccel.rays.batch import HitBatch, RayBatch
+from rayaccel.scene.mesh import TriangleMesh
+
+QUERY_KINDS = ("closest", "any")
+
+
+def default_traversal(structure: str) -> str:
+    """Return the traversal key used when none is named: ``<structure>.stack`` if registered."""
+    candidates = registry.keys("traversal", structure)
+    if not candidates:
+        raise InvalidInputError(f"no traversal is registered for structure {structure!r}")
+    preferred = f"{structure}.stack"
+    return preferred if preferred in candidates else candidates[0]
+
+
+class Accel:
+    """An acceleration structure over a mesh, ready for queries.
+
+    Use :func:`build` to make one. Thread-safe: several Python threads may query one
+    ``Accel`` at once (parallel kernels are serialised when numba's threading layer
+    is not thread-safe, see :mod:`rayaccel.config`).
+
+    Attributes
+    ----------
+    key : str
+        The builder's registry key.
+    mesh : TriangleMesh
+    structure : object
+        The canonical structure (e.g. :class:`rayaccel.bvh.layout.Bvh2`).
+    options : object
+        The builder options used.
+    build_ms : float
+        Wall-clock build time (includes numba compilation on a process's first build).
+    """
+
+    def __init__(self, key: str, mesh: TriangleMesh, structure: Any, options: Any, build_ms: float):
+        self.key = key
+        self.mesh = mesh
+        self.structure = structure
+        self.options = options
+        self.build_ms = build_ms
+        self.structure_name = registry.get(key, "builder").structure
+        self._cache: dict[str, Any] = {}
+        self._lock = threading.Lock()
+
+    def __repr__(self) -> str:
+        return f"Accel({self.key!r}, {self.mesh!r})"
+
+    # -- queries -------------------------------------------------------------------------------
+
+    def trace(
+        self,
+        rays: RayBatch,
+        *,
+        query: str = "closest",
+        traversal: str | None = None,
+        stats: bool = False,
+        **options: Any,
+    ) -> HitBatch:
+        """Trace a :class:`RayBatch` with a registered traversal.
+
+        Parameters
+        ----------
+        rays : RayBatch
+        query : {"closest", "any"}
+            ``"any"`` stops at the first hit found (``prim`` is some hit, not the closest).
+        traversal : str, optional
+            Traversal registry key; default ``<structure>.stack``.
+        stats : bool
+            Fill ``hits.stats`` with per-ray counters.
+        **options
+            Options of the traversal (unknown names raise with a suggestion).
+        """
+        if query not in QUERY_KINDS:
+            raise InvalidInputError(f"query: expected one of {QUERY_KINDS}, got {query!r}")
+        if not isinstance(rays, RayBatch):
+            raise InvalidInputError(f"rays: expected a RayBatch, got {type(rays).__name__}")
+        key = traversal or default_traversal(self.structure_name)
+        variant = registry.get(key, "traversal")
+        if variant.structure != self.structure_name:
+            raise InvalidInputError(
+                f"traversal {key!r} walks {variant.structure!r}, but this accel is a "
+                f"{self.structure_name!r} (built by {self.key!r})"
+            )
+        opts = variant.make_options(options)
+        if rays.n_rays == 0:
+            return HitBatch.empty(0)
+        with self._lock:
+            cache = self._cache
+        return variant.func(  # type: ignore[no-any-return]
+            self.structure, self.mesh, rays, query=query, stats=stats, options=opts, cache=cache
+        )
+
+    def intersect(
+        self,
+        origins: Any,
+        directions: Any,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        *,
+        traversal: str | None = None,
+        stats: bool = False,
+        **options: Any,
+    ) -> HitBatch:
+        """Return the closest hit of every ray.
+
+        Parameters
+        ----------
+        origins, directions : (n, 3) array_like of float
+            Coerced once to float32. Directions need not be normalised; a zero or
+            non-finite direction is a miss.
+        tmin, tmax : float or (n,) array_like of float
+            Hits are accepted in ``[tmin, tmax]``; ``tmin > tmax`` is a miss.
+        traversal : str, optional
+            Traversal registry key (``rayaccel list``); default ``<structure>.stack``.
+        stats : bool
+            Also return per-ray counters (``hits.stats["nodes"]`` etc.).
+        **options
+            Options of the traversal.
+
+        Returns
+        -------
+        HitBatch
+            ``t`` (inf on a miss), ``prim`` (-1 on a miss), barycentrics ``u, v``.
+        """
+        rays = RayBatch(origins, directions, tmin, tmax)
+        return self.trace(rays, query="closest", traversal=traversal, stats=stats, **options)
+
+    def occluded(
+        self,
+        origins: Any,
+        directions: Any,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        *,
+        traversal: str | None = None,
+        **options: Any,
+    ) -> BoolArray:
+        """Return ``(n,)`` bool: whether anything is hit in ``[tmin, tmax]`` (any-hit query).
+
+        For per-ray counters of an any-hit query use ``trace(rays, query="any", stats=True)``.
+        """
+        rays = RayBatch(origins, directions, tmin, tmax)
+        return self.trace(rays, query="any", traversal=traversal, **options).hit
+
+    # -- structure -----------------------------------------------------------------------------
+
+    def derived(self, name: str) -> Any:
+        """Return the derived layout ``name`` if a traversal has built it, else None."""
+        return self._cache.get(name)
+
+    def info(self) -> dict[str, Any]:
+        """Return build and quality figures.
+
+        Keys: ``builder``, ``structure``, ``build_ms``, ``n_prims``, ``n_nodes``,
+        ``n_leaves``, ``n_refs``, ``depth``, ``sah``, ``mean_leaf_size``, ``bytes``
+        (canonical plus every derived layout built so far), ``options``.
+        """
+        s = self.structure
+        derived_bytes = sum(int(v.nbytes()) for v in self._cache.values() if hasattr(v, "nbytes"))
+        info: dict[str, Any] = {
+            "builder": self.key,
+            "structure": self.structure_name,
+            "build_ms": round(self.build_ms, 3),
+            "n_prims": self.mesh.n_triangles,
+        }
+        if hasattr(s, "info"):
+            info.update(s.info())
+        else:
+            info.update(
+                n_nodes=s.n_nodes,
+                n_leaves=s.n_leaves,
+                n_refs=s.n_refs,
+                depth=s.depth(),
+                sah=s.sah_cost(),
+                mean_leaf_size=s.n_refs / max(s.n_leaves, 1),
+            )
+        info["bytes"] = int(s.nbytes()) + derived_bytes
+        info["options"] = {k: getattr(self.options, k) for k in getattr(self.options, "__slots__", ())}
+        return info
+
+    def validate(self) -> None:
+        """Check every invariant of the structure; raise ``StructureInvariantError`` if broken."""
+        self.structure.validate(self.mesh.triangles())
+
+
+def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> Accel:
+    """Build an acceleration structure over ``mesh`` with the registered builder ``key``.
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+    key : str
+        Builder registry key (``rayaccel list``), e.g. ``"bvh2.binned_sah"``.
+    **options
+        The builder's options (e.g. ``max_leaf_size=4``); unknown names raise.
+
+    Returns
+    -------
+    Accel
+
+    Raises
+    ------
+    UnknownVariantError
+        Unknown key or option, with suggestions.
+    InvalidInputError
+        ``mesh`` is not a TriangleMesh, or an option is out of range.
+    """
+    if not isinstance(mesh, TriangleMesh):
+        raise InvalidInputError(
+            f"mesh: expected a rayaccel.TriangleMesh, got {type(mesh).__name__} "
+            "(use rayaccel.TriangleMesh(vertices, faces) or rayaccel.load_mesh(path))"
+        )
+    variant = registry.get(key, "builder")
+    opts = variant.make_options(options)
+    start = time.perf_counter()
+    with config.parallel_section():
+        structure = variant.func(mesh, opts)
+    build_ms = (time.perf_counter() - start) * 1e3
+    accel = Accel(key, mesh, structure, opts, build_ms)
+    if config.DEBUG:
+        accel.validate()
+    return accel

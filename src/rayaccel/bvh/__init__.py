@@ -1,0 +1,1 @@
+"""Bounding volume hierarchies: the canonical binary layout, its builders and traversals."""

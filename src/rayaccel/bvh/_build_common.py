@@ -1,0 +1,152 @@
+"""Pieces shared by the top-down BVH builders.
+
+Builders work on a temporary node pool in which every inner node's two children
+are allocated as an adjacent pair, but where parallel subtree builds may leave
+unused slots. :func:`compact_to_canonical` renumbers the reachable nodes in
+depth-first order (root 0, siblings adjacent), which is the canonical
+:class:`~rayaccel.bvh.layout.Bvh2` and keeps a subtree's nodes close in memory.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
+from rayaccel.dtypes import INDEX, REAL, FloatArray
+
+
+@cpu_kernel(parallel=True)
+def primitive_bounds(triangles):
+    """Return ``(lo, hi, centroid)``, each ``(F, 3)`` float32, of ``triangles (F, 3, 3)``.
+
+    The centroid is the centre of the triangle's box (what binning uses).
+    """
+    n = triangles.shape[0]
+    lo = np.empty((n, 3), dtype=np.float32)
+    hi = np.empty((n, 3), dtype=np.float32)
+    centroid = np.empty((n, 3), dtype=np.float32)
+    for i in prange(n):
+        for a in range(3):
+            x0 = triangles[i, 0, a]
+            x1 = triangles[i, 1, a]
+            x2 = triangles[i, 2, a]
+            low = min(x0, min(x1, x2))
+            high = max(x0, max(x1, x2))
+            lo[i, a] = low
+            hi[i, a] = high
+            centroid[i, a] = np.float32(0.5) * low + np.float32(0.5) * high
+    return lo, hi, centroid
+
+
+def _range_bounds_py(index, begin, end, prim_lo, prim_hi, centroid, out):
+    """Write box ``out[0:6]`` and centroid box ``out[6:12]`` of ``index[begin:end]``."""
+    for a in range(3):
+        out[a] = np.inf
+        out[3 + a] = -np.inf
+        out[6 + a] = np.inf
+        out[9 + a] = -np.inf
+    for i in range(begin, end):
+        p = index[i]
+        for a in range(3):
+            out[a] = min(out[a], prim_lo[p, a])
+            out[3 + a] = max(out[3 + a], prim_hi[p, a])
+            out[6 + a] = min(out[6 + a], centroid[p, a])
+            out[9 + a] = max(out[9 + a], centroid[p, a])
+
+
+range_bounds = cpu_inline(_range_bounds_py)
+
+
+def _ceil_log2_py(n):
+    """Return the smallest ``k`` with ``2**k >= n`` (0 for n <= 1)."""
+    k = 0
+    while (1 << k) < n:
+        k += 1
+    return k
+
+
+ceil_log2 = cpu_inline(_ceil_log2_py)
+
+
+def depth_forces_median(depth, count, max_leaf_size):
+    """Return whether a node must be split by the balanced median to keep depth bounded.
+
+    A median split halves the count, so a node of ``count`` primitives needs at most
+    ``ceil_log2(ceil(count / max_leaf_size))`` more levels; we switch to median splits
+    while that still fits under ``MAX_DEPTH`` with one level to spare.
+    """
+    leaves = (count + max_leaf_size - 1) // max_leaf_size
+    return depth + ceil_log2(leaves) >= MAX_DEPTH - 1
+
+
+depth_forces_median = cpu_inline(depth_forces_median)
+
+
+@cpu_kernel()
+def _compact_kernel(t_lo, t_hi, t_first, t_count, n_used_hint):
+    """Renumber reachable pool nodes depth-first; return canonical arrays."""
+    n_cap = t_count.shape[0]
+    new_of = np.full(n_cap, -1, dtype=np.int32)
+    order = np.empty(n_used_hint, dtype=np.int32)
+    # Depth-first walk; a pair of children gets consecutive new ids when its parent is numbered.
+    stack = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
+    stack[0] = 0
+    sp = 1
+    new_of[0] = 0
+    order[0] = 0
+    next_id = 1
+    while sp > 0:
+        sp -= 1
+        old = stack[sp]
+        if t_count[old] == 0:
+            left = t_first[old]
+            new_of[left] = next_id
+            new_of[left + 1] = next_id + 1
+            order[next_id] = left
+            order[next_id + 1] = left + 1
+            next_id += 2
+            stack[sp] = left + 1
+            stack[sp + 1] = left
+            sp += 2
+    lo = np.empty((next_id, 3), dtype=np.float32)
+    hi = np.empty((next_id, 3), dtype=np.float32)
+    first = np.empty(next_id, dtype=np.int32)
+    count = np.empty(next_id, dtype=np.int32)
+    for new in range(next_id):
+        old = order[new]
+        for a in range(3):
+            lo[new, a] = t_lo[old, a]
+            hi[new, a] = t_hi[old, a]
+        count[new] = t_count[old]
+        if t_count[old] == 0:
+            first[new] = new_of[t_first[old]]
+        else:
+            first[new] = t_first[old]
+    return lo, hi, first, count
+
+
+def compact_to_canonical(
+    t_lo: FloatArray,
+    t_hi: FloatArray,
+    t_first: np.ndarray,
+    t_count: np.ndarray,
+    prim_index: np.ndarray,
+    n_prims: int,
+    n_used: int,
+) -> Bvh2:
+    """Turn a node pool rooted at slot 0 into a canonical :class:`Bvh2`.
+
+    Leaves keep their ``first`` offsets into ``prim_index``; a builder whose leaves
+    are not in depth-first order of ``prim_index`` must reorder it itself.
+    """
+    lo, hi, first, count = _compact_kernel(t_lo, t_hi, t_first, t_count, max(n_used, 1))
+    return Bvh2(
+        node_lo=np.ascontiguousarray(lo, dtype=REAL),
+        node_hi=np.ascontiguousarray(hi, dtype=REAL),
+        node_first=np.ascontiguousarray(first, dtype=INDEX),
+        node_count=np.ascontiguousarray(count, dtype=INDEX),
+        prim_index=np.ascontiguousarray(prim_index, dtype=INDEX),
+        n_prims=n_prims,
+    )

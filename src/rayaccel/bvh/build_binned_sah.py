@@ -1,0 +1,534 @@
+"""Binned SAH BVH construction (Wald 2007, "On fast Construction of SAH-based Bounding Volume Hierarchies").
+
+Top-down: each node's primitives are binned by centroid into ``n_bins`` equal
+intervals of the node's *centroid* bounds on all three axes, the surface area
+heuristic is evaluated at every bin boundary with one sweep per axis, and the
+primitive range is partitioned in place around the cheapest plane. The split cost
+is ``C_trav + C_prim · (A_L·N_L + A_R·N_R) / A_node`` against a leaf cost of
+``C_prim · N`` (MacDonald & Booth 1990). Nodes are split when the split is cheaper
+or when they hold more than ``max_leaf_size`` primitives.
+
+Degenerate input (all centroids equal, e.g. many copies of one triangle) has no
+binning plane; such nodes are split at the index median, which bounds the depth by
+``log2(n)``. Any node whose remaining depth could exceed ``MAX_DEPTH`` is split at
+the median too, so no traversal stack can overflow.
+
+Parallelism (STYLE §4.5): nodes above ``parallel_threshold`` primitives are binned
+by all threads (per-chunk bins, min/max and integer reductions, so the result does
+not depend on the thread count); the remaining subtrees are built concurrently with
+``prange``, each into a node block reserved by a prefix sum. The pool is then
+compacted depth-first into the canonical layout. Cost O(n log n).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel._variant import register
+from rayaccel.bvh._build_common import (
+    compact_to_canonical,
+    depth_forces_median,
+    primitive_bounds,
+    range_bounds,
+)
+from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
+from rayaccel.errors import InvalidInputError
+from rayaccel.scene.mesh import TriangleMesh
+
+MAX_BINS = 256
+
+
+@dataclass(frozen=True, slots=True)
+class BinnedSahOptions:
+    """Options of :func:`build_binned_sah`.
+
+    Attributes
+    ----------
+    n_bins : int
+        Bins per axis (2..256). 32 is within a few percent of a full sweep's SAH.
+    max_leaf_size : int
+        Nodes with more primitives are always split (1..64).
+    traversal_cost : float
+        SAH cost of one inner node (two box tests), relative to one triangle test.
+    intersection_cost : float
+        SAH cost of one triangle test.
+    parallel_threshold : int
+        Nodes with at least this many primitives are binned by all threads; smaller
+        subtrees are built one per thread.
+    """
+
+    n_bins: int = 32
+    max_leaf_size: int = 8
+    traversal_cost: float = 1.0
+    intersection_cost: float = 1.0
+    parallel_threshold: int = 32768
+
+    def __post_init__(self) -> None:
+        if not 2 <= self.n_bins <= MAX_BINS:
+            raise InvalidInputError(f"n_bins: expected 2..{MAX_BINS}, got {self.n_bins}")
+        if not 1 <= self.max_leaf_size <= 64:
+            raise InvalidInputError(f"max_leaf_size: expected 1..64, got {self.max_leaf_size}")
+        if not (self.traversal_cost >= 0 and self.intersection_cost > 0):
+            raise InvalidInputError("traversal_cost must be >= 0 and intersection_cost > 0")
+        if self.parallel_threshold < 2:
+            raise InvalidInputError("parallel_threshold: expected >= 2")
+
+
+def _bin_prims_py(index, begin, end, centroid, prim_lo, prim_hi, cb_lo, scale, n_bins,
+                  counts, bin_box):
+    """Accumulate ``index[begin:end]`` into per-axis bins (counts and boxes)."""
+    for i in range(begin, end):
+        p = index[i]
+        for a in range(3):
+            b = int((centroid[p, a] - cb_lo[a]) * scale[a])
+            if b > n_bins - 1:
+                b = n_bins - 1
+            if b < 0:
+                b = 0
+            counts[a, b] += 1
+            for k in range(3):
+                bin_box[a, b, k] = min(bin_box[a, b, k], prim_lo[p, k])
+                bin_box[a, b, 3 + k] = max(bin_box[a, b, 3 + k], prim_hi[p, k])
+
+
+bin_prims = cpu_inline(_bin_prims_py)
+
+
+@cpu_inline
+def _reset_bins(counts, bin_box, n_bins):
+    for a in range(3):
+        for b in range(n_bins):
+            counts[a, b] = 0
+            for k in range(3):
+                bin_box[a, b, k] = np.inf
+                bin_box[a, b, 3 + k] = -np.inf
+
+
+@cpu_inline
+def _half_area(lo0, lo1, lo2, hi0, hi1, hi2):
+    ex = np.float64(hi0) - lo0
+    ey = np.float64(hi1) - lo1
+    ez = np.float64(hi2) - lo2
+    return ex * ey + ey * ez + ez * ex
+
+
+@cpu_inline
+def _bin_scales(cb, n_bins, scale):
+    """Per-axis scale mapping a centroid to its bin; 0 for an axis with no extent."""
+    usable = False
+    for a in range(3):
+        extent = cb[9 + a] - cb[6 + a]
+        if extent > 0:
+            scale[a] = np.float32(n_bins) * np.float32(0.99999) / extent
+            usable = True
+        else:
+            scale[a] = 0
+    return usable
+
+
+@cpu_inline
+def _best_split(counts, bin_box, n_bins, scale, count, node_area, trav_cost, isect_cost,
+                suffix, child_box):
+    """Sweep each axis's bins; return ``(cost, axis, bin)`` of the best plane (axis -1 if none).
+
+    The best plane puts bins ``<= bin`` left. ``child_box[0:6]``/``[6:12]`` receive the
+    left and right boxes. ``suffix`` is scratch of shape (n_bins, 7).
+    """
+    best_cost = np.inf
+    best_axis = -1
+    best_bin = -1
+    inv_area = 1.0 / node_area if node_area > 0 else 0.0
+    for a in range(3):
+        if scale[a] == 0:
+            continue
+        # Right-to-left prefix: box and count of bins b..n_bins-1.
+        lo0 = np.inf
+        lo1 = np.inf
+        lo2 = np.inf
+        hi0 = -np.inf
+        hi1 = -np.inf
+        hi2 = -np.inf
+        n_right = 0
+        for b in range(n_bins - 1, 0, -1):
+            n_right += counts[a, b]
+            lo0 = min(lo0, bin_box[a, b, 0])
+            lo1 = min(lo1, bin_box[a, b, 1])
+            lo2 = min(lo2, bin_box[a, b, 2])
+            hi0 = max(hi0, bin_box[a, b, 3])
+            hi1 = max(hi1, bin_box[a, b, 4])
+            hi2 = max(hi2, bin_box[a, b, 5])
+            suffix[b, 0] = lo0
+            suffix[b, 1] = lo1
+            suffix[b, 2] = lo2
+            suffix[b, 3] = hi0
+            suffix[b, 4] = hi1
+            suffix[b, 5] = hi2
+            suffix[b, 6] = n_right
+        # Left-to-right sweep evaluating the plane after bin b.
+        lo0 = np.inf
+        lo1 = np.inf
+        lo2 = np.inf
+        hi0 = -np.inf
+        hi1 = -np.inf
+        hi2 = -np.inf
+        n_left = 0
+        for b in range(n_bins - 1):
+            n_left += counts[a, b]
+            lo0 = min(lo0, bin_box[a, b, 0])
+            lo1 = min(lo1, bin_box[a, b, 1])
+            lo2 = min(lo2, bin_box[a, b, 2])
+            hi0 = max(hi0, bin_box[a, b, 3])
+            hi1 = max(hi1, bin_box[a, b, 4])
+            hi2 = max(hi2, bin_box[a, b, 5])
+            n_r = count - n_left
+            if n_left == 0 or n_r == 0:
+                continue
+            area_left = _half_area(lo0, lo1, lo2, hi0, hi1, hi2)
+            s = suffix[b + 1]
+            area_right = _half_area(s[0], s[1], s[2], s[3], s[4], s[5])
+            cost = trav_cost + isect_cost * (area_left * n_left + area_right * n_r) * inv_area
+            if cost < best_cost:
+                best_cost = cost
+                best_axis = a
+                best_bin = b
+                child_box[0] = lo0
+                child_box[1] = lo1
+                child_box[2] = lo2
+                child_box[3] = hi0
+                child_box[4] = hi1
+                child_box[5] = hi2
+                for k in range(6):
+                    child_box[6 + k] = s[k]
+    return best_cost, best_axis, best_bin
+
+
+@cpu_inline
+def _partition(index, begin, end, centroid, axis, split_bin, cb_lo_axis, scale_axis, n_bins,
+               left_cb, right_cb):
+    """Partition ``index[begin:end]`` so bins ``<= split_bin`` come first; return the middle.
+
+    Also writes the centroid bounds of both sides into ``left_cb``/``right_cb`` (lo 0:3, hi 3:6).
+    """
+    for k in range(3):
+        left_cb[k] = np.inf
+        left_cb[3 + k] = -np.inf
+        right_cb[k] = np.inf
+        right_cb[3 + k] = -np.inf
+    i = begin
+    j = end - 1
+    while i <= j:
+        p = index[i]
+        b = int((centroid[p, axis] - cb_lo_axis) * scale_axis)
+        if b > n_bins - 1:
+            b = n_bins - 1
+        if b < 0:
+            b = 0
+        if b <= split_bin:
+            for k in range(3):
+                left_cb[k] = min(left_cb[k], centroid[p, k])
+                left_cb[3 + k] = max(left_cb[3 + k], centroid[p, k])
+            i += 1
+        else:
+            for k in range(3):
+                right_cb[k] = min(right_cb[k], centroid[p, k])
+                right_cb[3 + k] = max(right_cb[3 + k], centroid[p, k])
+            index[i] = index[j]
+            index[j] = p
+            j -= 1
+    return i
+
+
+@cpu_inline
+def _set_node_box(t_lo, t_hi, node, box):
+    for k in range(3):
+        t_lo[node, k] = box[k]
+        t_hi[node, k] = box[3 + k]
+
+
+@cpu_kernel()
+def _build_subtree(index, begin, end, depth0, root, node_base, box0, centroid, prim_lo, prim_hi,
+                   n_bins, max_leaf, trav_cost, isect_cost, t_lo, t_hi, t_first, t_count):
+    """Build the subtree over ``index[begin:end]`` serially.
+
+    ``root`` is the pool slot of the subtree root (its box already written) and
+    children pairs are allocated from ``node_base``. ``box0[0:12]`` holds the root's
+    box and centroid box. Returns the next free pool slot.
+    """
+    stack_node = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
+    stack_begin = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
+    stack_end = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
+    stack_depth = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
+    stack_cb = np.empty((2 * MAX_DEPTH + 4, 6), dtype=np.float32)
+    counts = np.zeros((3, n_bins), dtype=np.int32)
+    bin_box = np.empty((3, n_bins, 6), dtype=np.float32)
+    suffix = np.empty((n_bins, 7), dtype=np.float32)
+    child_box = np.empty(12, dtype=np.float32)
+    cb = np.empty(12, dtype=np.float32)
+    scale = np.empty(3, dtype=np.float32)
+    left_cb = np.empty(6, dtype=np.float32)
+    right_cb = np.empty(6, dtype=np.float32)
+    half = np.empty(12, dtype=np.float32)
+    next_node = node_base
+    # The work stack holds (node, range, depth, centroid box); larger child is pushed first.
+    stack_node[0] = root
+    stack_begin[0] = begin
+    stack_end[0] = end
+    stack_depth[0] = depth0
+    for k in range(6):
+        stack_cb[0, k] = box0[6 + k]
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack_node[sp]
+        lo_i = stack_begin[sp]
+        hi_i = stack_end[sp]
+        depth = stack_depth[sp]
+        count = hi_i - lo_i
+        for k in range(6):
+            cb[6 + k] = stack_cb[sp, k]
+        # Small enough to stop outright.
+        if count <= 1:
+            t_first[node] = lo_i
+            t_count[node] = count
+            continue
+        node_area = _half_area(t_lo[node, 0], t_lo[node, 1], t_lo[node, 2],
+                               t_hi[node, 0], t_hi[node, 1], t_hi[node, 2])
+        forced_median = depth_forces_median(depth, count, max_leaf)
+        axis = -1
+        split_bin = -1
+        cost = np.inf
+        if not forced_median and _bin_scales(cb, n_bins, scale):
+            _reset_bins(counts, bin_box, n_bins)
+            for a in range(3):
+                cb[a] = cb[6 + a]
+            bin_prims(index, lo_i, hi_i, centroid, prim_lo, prim_hi, cb, scale, n_bins,
+                      counts, bin_box)
+            cost, axis, split_bin = _best_split(counts, bin_box, n_bins, scale, count, node_area,
+                                                trav_cost, isect_cost, suffix, child_box)
+        # Leaf when splitting does not pay and the leaf is small enough.
+        if count <= max_leaf and (axis < 0 or cost >= isect_cost * count):
+            t_first[node] = lo_i
+            t_count[node] = count
+            continue
+        left = next_node
+        next_node += 2
+        t_first[node] = left
+        t_count[node] = 0
+        if axis >= 0:
+            mid = _partition(index, lo_i, hi_i, centroid, axis, split_bin, cb[6 + axis],
+                             scale[axis], n_bins, left_cb, right_cb)
+            for k in range(3):
+                t_lo[left, k] = child_box[k]
+                t_hi[left, k] = child_box[3 + k]
+                t_lo[left + 1, k] = child_box[6 + k]
+                t_hi[left + 1, k] = child_box[9 + k]
+        else:
+            # No usable plane (equal centroids) or depth bound reached: balanced index median.
+            mid = lo_i + count // 2
+            range_bounds(index, lo_i, mid, prim_lo, prim_hi, centroid, half)
+            _set_node_box(t_lo, t_hi, left, half[0:6])
+            for k in range(6):
+                left_cb[k] = half[6 + k]
+            range_bounds(index, mid, hi_i, prim_lo, prim_hi, centroid, half)
+            _set_node_box(t_lo, t_hi, left + 1, half[0:6])
+            for k in range(6):
+                right_cb[k] = half[6 + k]
+        # Push the larger child first so the smaller is processed next (stack stays O(log n)).
+        n_left = mid - lo_i
+        n_right = hi_i - mid
+        if n_left >= n_right:
+            order0, order1 = 0, 1
+        else:
+            order0, order1 = 1, 0
+        for c in (order0, order1):
+            stack_node[sp] = left + c
+            stack_begin[sp] = lo_i if c == 0 else mid
+            stack_end[sp] = mid if c == 0 else hi_i
+            stack_depth[sp] = depth + 1
+            for k in range(6):
+                stack_cb[sp, k] = left_cb[k] if c == 0 else right_cb[k]
+            sp += 1
+    return next_node
+
+
+@cpu_kernel(parallel=True)
+def _bin_parallel(index, begin, end, centroid, prim_lo, prim_hi, cb_lo, scale, n_bins, n_chunks):
+    """Bin a large range with ``n_chunks`` private bin sets, then reduce them in order."""
+    counts_c = np.zeros((n_chunks, 3, n_bins), dtype=np.int32)
+    box_c = np.empty((n_chunks, 3, n_bins, 6), dtype=np.float32)
+    size = (end - begin + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        for a in range(3):
+            for b in range(n_bins):
+                for k in range(3):
+                    box_c[c, a, b, k] = np.inf
+                    box_c[c, a, b, 3 + k] = -np.inf
+        lo_i = begin + c * size
+        hi_i = min(end, lo_i + size)
+        bin_prims(index, lo_i, hi_i, centroid, prim_lo, prim_hi, cb_lo, scale, n_bins,
+                  counts_c[c], box_c[c])
+    counts = np.zeros((3, n_bins), dtype=np.int32)
+    bin_box = np.empty((3, n_bins, 6), dtype=np.float32)
+    for a in range(3):
+        for b in range(n_bins):
+            for k in range(3):
+                bin_box[a, b, k] = np.inf
+                bin_box[a, b, 3 + k] = -np.inf
+            for c in range(n_chunks):
+                counts[a, b] += counts_c[c, a, b]
+                for k in range(3):
+                    bin_box[a, b, k] = min(bin_box[a, b, k], box_c[c, a, b, k])
+                    bin_box[a, b, 3 + k] = max(bin_box[a, b, 3 + k], box_c[c, a, b, 3 + k])
+    return counts, bin_box
+
+
+@cpu_kernel()
+def _split_large(index, begin, end, depth, node, left, cb_in, counts, bin_box, centroid, prim_lo,
+                 prim_hi, n_bins, max_leaf, trav_cost, isect_cost, scale, t_lo, t_hi, t_first,
+                 t_count, out_cb):
+    """Split one large node with precomputed bins; return the partition point (-1: leaf)."""
+    count = end - begin
+    suffix = np.empty((n_bins, 7), dtype=np.float32)
+    child_box = np.empty(12, dtype=np.float32)
+    half = np.empty(12, dtype=np.float32)
+    node_area = _half_area(t_lo[node, 0], t_lo[node, 1], t_lo[node, 2],
+                           t_hi[node, 0], t_hi[node, 1], t_hi[node, 2])
+    axis = -1
+    split_bin = -1
+    cost = np.inf
+    if not depth_forces_median(depth, count, max_leaf) and counts.shape[1] > 0:
+        cost, axis, split_bin = _best_split(counts, bin_box, n_bins, scale, count, node_area,
+                                            trav_cost, isect_cost, suffix, child_box)
+    if count <= max_leaf and (axis < 0 or cost >= isect_cost * count):
+        t_first[node] = begin
+        t_count[node] = count
+        return -1
+    t_first[node] = left
+    t_count[node] = 0
+    if axis >= 0:
+        mid = _partition(index, begin, end, centroid, axis, split_bin, cb_in[axis], scale[axis],
+                         n_bins, out_cb[0], out_cb[1])
+        for k in range(3):
+            t_lo[left, k] = child_box[k]
+            t_hi[left, k] = child_box[3 + k]
+            t_lo[left + 1, k] = child_box[6 + k]
+            t_hi[left + 1, k] = child_box[9 + k]
+    else:
+        mid = begin + count // 2
+        range_bounds(index, begin, mid, prim_lo, prim_hi, centroid, half)
+        _set_node_box(t_lo, t_hi, left, half[0:6])
+        for k in range(6):
+            out_cb[0, k] = half[6 + k]
+        range_bounds(index, mid, end, prim_lo, prim_hi, centroid, half)
+        _set_node_box(t_lo, t_hi, left + 1, half[0:6])
+        for k in range(6):
+            out_cb[1, k] = half[6 + k]
+    return mid
+
+
+@cpu_kernel(parallel=True)
+def _build_frontier(index, task_begin, task_end, task_depth, task_node, task_base, task_cb,
+                    centroid, prim_lo, prim_hi, n_bins, max_leaf, trav_cost, isect_cost,
+                    t_lo, t_hi, t_first, t_count, used):
+    """Build every frontier subtree concurrently, each into its reserved node block."""
+    for i in prange(task_begin.shape[0]):
+        box0 = np.empty(12, dtype=np.float32)
+        node = task_node[i]
+        for k in range(3):
+            box0[k] = t_lo[node, k]
+            box0[3 + k] = t_hi[node, k]
+        for k in range(6):
+            box0[6 + k] = task_cb[i, k]
+        used[i] = _build_subtree(index, task_begin[i], task_end[i], task_depth[i], node,
+                                 task_base[i], box0, centroid, prim_lo, prim_hi, n_bins,
+                                 max_leaf, trav_cost, isect_cost, t_lo, t_hi, t_first, t_count)
+
+
+@register(
+    "builder",
+    "bvh2.binned_sah",
+    options=BinnedSahOptions,
+    summary="top-down binned SAH on centroid bins, parallel over large nodes and subtrees",
+    reference="Wald 2007, On fast Construction of SAH-based Bounding Volume Hierarchies",
+)
+def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None) -> Bvh2:
+    """Build a binary BVH with the binned surface area heuristic.
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+    options : BinnedSahOptions, optional
+
+    Returns
+    -------
+    Bvh2
+        Canonical tree; depth at most ``MAX_DEPTH``.
+    """
+    opt = options or BinnedSahOptions()
+    prim_lo, prim_hi, centroid = primitive_bounds(mesh.triangles())
+    n = mesh.n_triangles
+    index = np.arange(n, dtype=np.int32)
+    capacity = 2 * n - 1 if n > 0 else 1
+    t_lo = np.empty((capacity, 3), dtype=np.float32)
+    t_hi = np.empty((capacity, 3), dtype=np.float32)
+    t_first = np.zeros(capacity, dtype=np.int32)
+    t_count = np.full(capacity, -1, dtype=np.int32)
+    box = np.empty(12, dtype=np.float32)
+    box[0:3], box[3:6] = prim_lo.min(axis=0), prim_hi.max(axis=0)
+    box[6:9], box[9:12] = centroid.min(axis=0), centroid.max(axis=0)
+    t_lo[0], t_hi[0] = box[0:3], box[3:6]
+    n_bins = int(opt.n_bins)
+    max_leaf = int(opt.max_leaf_size)
+    trav, isect = float(opt.traversal_cost), float(opt.intersection_cost)
+    n_chunks = max(1, 4 * numba.get_num_threads())
+    # Top phase: split large nodes with all threads binning; collect the frontier.
+    pending = [(0, n, 0, 0, box[6:12].copy())]
+    frontier: list[tuple[int, int, int, int, np.ndarray]] = []
+    next_node = 1
+    scale = np.empty(3, dtype=np.float32)
+    out_cb = np.empty((2, 6), dtype=np.float32)
+    while pending:
+        begin, end, depth, node, cb = pending.pop()
+        count = end - begin
+        if count < opt.parallel_threshold:
+            frontier.append((begin, end, depth, node, cb))
+            continue
+        extent = cb[3:6] - cb[0:3]
+        with np.errstate(divide="ignore"):
+            scale[:] = np.where(extent > 0, np.float32(n_bins) * np.float32(0.99999) / extent, 0)
+        if (scale > 0).any():
+            counts, bin_box = _bin_parallel(index, begin, end, centroid, prim_lo, prim_hi,
+                                            cb[0:3].copy(), scale, n_bins, n_chunks)
+        else:
+            counts = np.zeros((3, 0), dtype=np.int32)
+            bin_box = np.zeros((3, 0, 6), dtype=np.float32)
+        mid = _split_large(index, begin, end, depth, node, next_node, cb[0:3].copy(), counts,
+                           bin_box, centroid, prim_lo, prim_hi, n_bins, max_leaf, trav, isect,
+                           scale, t_lo, t_hi, t_first, t_count, out_cb)
+        if mid < 0:
+            continue
+        left = next_node
+        next_node += 2
+        pending.append((mid, end, depth + 1, left + 1, out_cb[1].copy()))
+        pending.append((begin, mid, depth + 1, left, out_cb[0].copy()))
+    # Frontier phase: reserve 2m-2 pool slots per subtree of m primitives, build concurrently.
+    if frontier:
+        frontier.sort(key=lambda task: task[0])
+        task_begin = np.array([t[0] for t in frontier], dtype=np.int32)
+        task_end = np.array([t[1] for t in frontier], dtype=np.int32)
+        task_depth = np.array([t[2] for t in frontier], dtype=np.int32)
+        task_node = np.array([t[3] for t in frontier], dtype=np.int32)
+        task_cb = np.ascontiguousarray(np.stack([t[4] for t in frontier]), dtype=np.float32)
+        sizes = np.maximum(2 * (task_end - task_begin) - 2, 0)
+        task_base = (next_node + np.concatenate(([0], np.cumsum(sizes)[:-1]))).astype(np.int32)
+        used = np.empty(len(frontier), dtype=np.int32)
+        _build_frontier(index, task_begin, task_end, task_depth, task_node, task_base, task_cb,
+                        centroid, prim_lo, prim_hi, n_bins, max_leaf, trav, isect,
+                        t_lo, t_hi, t_first, t_count, used)
+        next_node = int(task_base[-1] + sizes[-1])
+    return compact_to_canonical(t_lo, t_hi, t_first, t_count, index, n, next_node)

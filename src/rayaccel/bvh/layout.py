@@ -1,0 +1,374 @@
+"""The canonical binary BVH (``bvh2``) and the packed layout the stack traversal reads.
+
+Canonical layout (:class:`Bvh2`, what every builder emits)
+    Root at node 0, siblings adjacent. ``node_count[i] > 0`` marks a leaf over
+    ``prim_index[node_first[i] : node_first[i] + node_count[i]]``; otherwise the
+    children are ``node_first[i]`` and ``node_first[i] + 1``. Node bounds are
+    float32 ``node_lo``/``node_hi`` (24 bytes per node, plus 8 for first/count).
+    ``prim_index`` holds primitive ids in leaf order; a primitive may appear in
+    several leaves only for spatial-split builders (``n_refs >= n_prims``).
+
+Packed layout (:class:`PackedBvh2`, Aila & Laine 2009 §3, derived once per accel)
+    One 64-byte row per *inner* node holding both children's boxes, so one cache
+    line serves the two box tests of a traversal step. Columns 0–5 are child 0's
+    ``[lo.x, hi.x, lo.y, hi.y, lo.z, hi.z]`` (interleaved so a ray picks its near
+    and far plane per axis by an offset, Williams et al. 2005), 6–11 child 1's,
+    12–13 the child references and 14–15 padding, stored as int32 in the same
+    buffer (``inner_ref`` is an int32 view). A reference ``>= 0`` is an inner row;
+    ``< 0`` is ``~leaf`` into ``leaf_first``/``leaf_count``. Triangles are copied
+    in leaf order (``tri (n_refs, 9)``: A, B, C) so a leaf streams contiguous
+    memory, and ``tri_prim`` maps each back to its mesh triangle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from rayaccel._jit import cpu_kernel
+from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+from rayaccel.errors import StructureInvariantError
+
+#: Deepest tree any builder may emit; traversal stacks hold STACK_SIZE >= MAX_DEPTH entries.
+MAX_DEPTH = 56
+STACK_SIZE = 64
+
+#: Bytes per element, for ``info()["bytes"]`` and the ``bytes`` counter.
+NODE_BYTES = 32
+PACKED_ROW_BYTES = 64
+LEAF_BYTES = 8
+TRIANGLE_BYTES = 36
+REF_BYTES = 4
+STACK_ENTRY_BYTES = 8
+
+
+class Bvh2Arrays(NamedTuple):
+    """The canonical arrays as one kernel argument."""
+
+    node_lo: FloatArray
+    node_hi: FloatArray
+    node_first: IntArray
+    node_count: IntArray
+    prim_index: IntArray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Bvh2:
+    """Binary BVH; siblings adjacent; root at node 0.
+
+    Attributes
+    ----------
+    node_lo, node_hi : (n_nodes, 3) float32
+        Node bounds (24 bytes per node).
+    node_first : (n_nodes,) int32
+        Leaf: first slot in ``prim_index``. Inner: left child index (right = left + 1).
+    node_count : (n_nodes,) int32
+        Primitive count; 0 marks an inner node.
+    prim_index : (n_refs,) int32
+        Primitive ids in leaf order.
+    n_prims : int
+        Number of primitives of the mesh the tree was built over.
+    """
+
+    node_lo: FloatArray
+    node_hi: FloatArray
+    node_first: IntArray
+    node_count: IntArray
+    prim_index: IntArray
+    n_prims: int
+
+    def arrays(self) -> Bvh2Arrays:
+        """Return the arrays as a NamedTuple kernels take as one argument."""
+        return Bvh2Arrays(self.node_lo, self.node_hi, self.node_first, self.node_count, self.prim_index)
+
+    @property
+    def n_nodes(self) -> int:
+        """Number of nodes."""
+        return int(self.node_count.shape[0])
+
+    @property
+    def n_leaves(self) -> int:
+        """Number of leaves."""
+        return int(np.count_nonzero(self.node_count))
+
+    @property
+    def n_refs(self) -> int:
+        """Number of primitive references (``>= n_prims`` with spatial splits)."""
+        return int(self.prim_index.shape[0])
+
+    def depths(self) -> IntArray:
+        """Return the ``(n_nodes,)`` depth of every node (root 0)."""
+        return _node_depths(self.node_first, self.node_count)
+
+    def depth(self) -> int:
+        """Return the depth of the deepest leaf (a single-leaf tree has depth 0)."""
+        return int(self.depths().max())
+
+    def nbytes(self) -> int:
+        """Return the canonical size in bytes (nodes and references)."""
+        return self.n_nodes * NODE_BYTES + self.n_refs * REF_BYTES
+
+    def sah_cost(self, inner_cost: float = 1.2, prim_cost: float = 1.0) -> float:
+        """Return the SAH cost of the tree (MacDonald & Booth 1990; Aila et al. 2013).
+
+        ``(C_inner · Σ_inner SA(n) + C_prim · Σ_leaf SA(l)·N(l)) / SA(root)``,
+        with no per-leaf constant. Computed in float64.
+        """
+        extent = (self.node_hi - self.node_lo).astype(np.float64)
+        area = 2.0 * (
+            extent[:, 0] * extent[:, 1] + extent[:, 1] * extent[:, 2] + extent[:, 2] * extent[:, 0]
+        )
+        leaf = self.node_count > 0
+        total = inner_cost * area[~leaf].sum() + prim_cost * (area[leaf] * self.node_count[leaf]).sum()
+        root_area = area[0]
+        if root_area <= 0.0:
+            return float(prim_cost * self.n_refs) if leaf[0] else float(inner_cost + prim_cost)
+        return float(total / root_area)
+
+    def validate(self, triangles: FloatArray | None = None) -> None:
+        """Check every invariant; raise :class:`StructureInvariantError` naming the first broken.
+
+        Checks: array shapes and dtypes; children indices in range and adjacent; every
+        node reachable exactly once from the root; depth ``<= MAX_DEPTH``; leaves cover
+        ``prim_index`` exactly once, in order; every primitive referenced at least once;
+        children boxes inside their parent; and, given ``triangles (F, 3, 3)``, each
+        leaf box contains the boxes of its triangles (or, for spatial splits, overlaps them).
+        """
+        n = self.n_nodes
+        if n == 0:
+            raise StructureInvariantError("bvh2: no nodes")
+        for name in ("node_lo", "node_hi"):
+            array = getattr(self, name)
+            if array.dtype != REAL or array.shape != (n, 3) or not array.flags.c_contiguous:
+                raise StructureInvariantError(f"bvh2: {name} must be C-contiguous float32 (n, 3)")
+        for name in ("node_first", "node_count", "prim_index"):
+            array = getattr(self, name)
+            if array.dtype != INDEX or array.ndim != 1 or not array.flags.c_contiguous:
+                raise StructureInvariantError(f"bvh2: {name} must be C-contiguous int32 (n,)")
+        if not (np.isfinite(self.node_lo).all() and np.isfinite(self.node_hi).all()):
+            raise StructureInvariantError("bvh2: non-finite node bounds")
+        if (self.node_lo > self.node_hi).any():
+            bad = int(np.argwhere((self.node_lo > self.node_hi).any(axis=1))[0, 0])
+            raise StructureInvariantError(f"bvh2: node {bad} has lo > hi")
+        code, where = _check_topology(self.arrays(), MAX_DEPTH)
+        if code != 0:
+            raise StructureInvariantError(f"bvh2: node {where}: {_TOPOLOGY_ERRORS[code]}")
+        if self.prim_index.size and (
+            self.prim_index.min() < 0 or self.prim_index.max() >= self.n_prims
+        ):
+            raise StructureInvariantError("bvh2: prim_index entry out of range [0, n_prims)")
+        referenced = np.zeros(self.n_prims, dtype=bool)
+        referenced[self.prim_index] = True
+        if not referenced.all():
+            raise StructureInvariantError(
+                f"bvh2: primitive {int(np.argmin(referenced))} is in no leaf"
+            )
+        if self.n_refs == self.n_prims and np.unique(self.prim_index).size != self.n_prims:
+            raise StructureInvariantError("bvh2: a primitive appears in two leaves")
+        if triangles is not None:
+            leaf = np.flatnonzero(self.node_count > 0)
+            leaf_of_ref = np.repeat(leaf, self.node_count[leaf])
+            order = np.argsort(self.node_first[leaf], kind="stable")
+            leaf_of_ref = np.repeat(leaf[order], self.node_count[leaf][order])
+            tri = triangles[self.prim_index]
+            tri_lo, tri_hi = tri.min(axis=1), tri.max(axis=1)
+            exact = self.n_refs == self.n_prims
+            if exact:
+                outside = (tri_lo < self.node_lo[leaf_of_ref]) | (tri_hi > self.node_hi[leaf_of_ref])
+            else:
+                outside = (tri_hi < self.node_lo[leaf_of_ref]) | (tri_lo > self.node_hi[leaf_of_ref])
+            if outside.any():
+                ref = int(np.argwhere(outside.any(axis=1))[0, 0])
+                raise StructureInvariantError(
+                    f"bvh2: triangle {int(self.prim_index[ref])} lies outside leaf "
+                    f"{int(leaf_of_ref[ref])}"
+                )
+
+
+_TOPOLOGY_ERRORS = {
+    1: "child index out of range",
+    2: "node reached twice (not a tree)",
+    3: "tree deeper than MAX_DEPTH",
+    4: "leaf range outside prim_index",
+    5: "leaves do not cover prim_index exactly once in order",
+    6: "child box not inside parent box",
+    7: "node unreachable from the root",
+}
+
+
+@cpu_kernel()
+def _check_topology(bvh, max_depth):
+    """Walk the tree from the root; return ``(error code, node)`` or ``(0, -1)``."""
+    n = bvh.node_count.shape[0]
+    seen = np.zeros(n, dtype=np.uint8)
+    stack = np.empty(max_depth + 2, dtype=np.int32)
+    depth_of = np.empty(max_depth + 2, dtype=np.int32)
+    stack[0] = 0
+    depth_of[0] = 0
+    sp = 1
+    next_ref = 0
+    n_refs = bvh.prim_index.shape[0]
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        depth = depth_of[sp]
+        if seen[node]:
+            return 2, node
+        seen[node] = 1
+        if depth > max_depth:
+            return 3, node
+        count = bvh.node_count[node]
+        first = bvh.node_first[node]
+        if count > 0:
+            # Leaves are visited left to right, so their ranges must tile prim_index.
+            if first < 0 or first + count > n_refs:
+                return 4, node
+            if first != next_ref:
+                return 5, node
+            next_ref += count
+            continue
+        if first <= node or first + 1 >= n:
+            return 1, node
+        for c in range(2):
+            child = first + c
+            for a in range(3):
+                if bvh.node_lo[child, a] < bvh.node_lo[node, a] or bvh.node_hi[child, a] > bvh.node_hi[node, a]:
+                    return 6, child
+        # Push right first so the left subtree's leaves come first.
+        stack[sp] = first + 1
+        depth_of[sp] = depth + 1
+        stack[sp + 1] = first
+        depth_of[sp + 1] = depth + 1
+        sp += 2
+    if next_ref != n_refs:
+        return 5, -1
+    for i in range(n):
+        if not seen[i]:
+            return 7, i
+    return 0, -1
+
+
+@cpu_kernel()
+def _node_depths(node_first, node_count):
+    """Return the depth of every node (children always follow their parent)."""
+    depth = np.zeros(node_count.shape[0], dtype=np.int32)
+    for i in range(node_count.shape[0]):
+        if node_count[i] == 0:
+            depth[node_first[i]] = depth[i] + 1
+            depth[node_first[i] + 1] = depth[i] + 1
+    return depth
+
+
+class PackedArrays(NamedTuple):
+    """The packed traversal layout as one kernel argument."""
+
+    inner_box: FloatArray  # (n_inner, 16) float32: child boxes
+    inner_ref: IntArray  # (n_inner, 16) int32 view of the same rows: refs at 12, 13
+    leaf_first: IntArray
+    leaf_count: IntArray
+    tri: FloatArray  # (n_refs, 9)
+    tri_prim: IntArray  # (n_refs,)
+    root_box: FloatArray  # (6,) interleaved lo/hi
+    root_ref: IntArray  # (1,)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PackedBvh2:
+    """Aila–Laine style packed BVH2 (see the module docstring)."""
+
+    rows: np.ndarray  # (n_inner, 16) float32 buffer
+    leaf_first: IntArray
+    leaf_count: IntArray
+    tri: FloatArray
+    tri_prim: IntArray
+    root_box: FloatArray
+    root_ref: IntArray
+
+    def arrays(self) -> PackedArrays:
+        """Return the arrays as a NamedTuple kernels take as one argument."""
+        return PackedArrays(
+            self.rows,
+            self.rows.view(np.int32),
+            self.leaf_first,
+            self.leaf_count,
+            self.tri,
+            self.tri_prim,
+            self.root_box,
+            self.root_ref,
+        )
+
+    def nbytes(self) -> int:
+        """Return the packed size in bytes."""
+        return int(
+            self.rows.nbytes
+            + self.leaf_first.nbytes
+            + self.leaf_count.nbytes
+            + self.tri.nbytes
+            + self.tri_prim.nbytes
+        )
+
+
+@cpu_kernel()
+def _pack_kernel(bvh, rows, ref_of_node, leaf_first, leaf_count):
+    """Fill the packed rows; ``ref_of_node`` maps canonical nodes to packed references."""
+    ints = rows.view(np.int32)
+    n = bvh.node_count.shape[0]
+    # Number inner rows and leaves in canonical (depth-first) order.
+    n_inner = 0
+    n_leaf = 0
+    for i in range(n):
+        if bvh.node_count[i] == 0:
+            ref_of_node[i] = n_inner
+            n_inner += 1
+        else:
+            ref_of_node[i] = ~n_leaf
+            leaf_first[n_leaf] = bvh.node_first[i]
+            leaf_count[n_leaf] = bvh.node_count[i]
+            n_leaf += 1
+    # Each inner row stores both children's interleaved boxes and references.
+    for i in range(n):
+        if bvh.node_count[i] != 0:
+            continue
+        row = ref_of_node[i]
+        for c in range(2):
+            child = bvh.node_first[i] + c
+            for a in range(3):
+                rows[row, 6 * c + 2 * a] = bvh.node_lo[child, a]
+                rows[row, 6 * c + 2 * a + 1] = bvh.node_hi[child, a]
+            ints[row, 12 + c] = ref_of_node[child]
+        ints[row, 14] = 0
+        ints[row, 15] = 0
+
+
+def pack_bvh2(bvh: Bvh2, triangles: FloatArray) -> PackedBvh2:
+    """Derive the packed traversal layout from a canonical BVH.
+
+    Parameters
+    ----------
+    bvh : Bvh2
+    triangles : (F, 3, 3) float32
+        Triangle corners of the mesh the tree was built over.
+    """
+    n = bvh.n_nodes
+    n_leaves = bvh.n_leaves
+    n_inner = n - n_leaves
+    rows = np.zeros((max(n_inner, 1), 16), dtype=REAL)
+    ref_of_node = np.empty(n, dtype=INDEX)
+    leaf_first = np.empty(n_leaves, dtype=INDEX)
+    leaf_count = np.empty(n_leaves, dtype=INDEX)
+    _pack_kernel(bvh.arrays(), rows, ref_of_node, leaf_first, leaf_count)
+    tri = np.ascontiguousarray(triangles[bvh.prim_index].reshape(-1, 9), dtype=REAL)
+    root_box = np.empty(6, dtype=REAL)
+    root_box[0::2] = bvh.node_lo[0]
+    root_box[1::2] = bvh.node_hi[0]
+    return PackedBvh2(
+        rows=rows,
+        leaf_first=leaf_first,
+        leaf_count=leaf_count,
+        tri=tri,
+        tri_prim=np.ascontiguousarray(bvh.prim_index),
+        root_box=root_box,
+        root_ref=np.array([ref_of_node[0]], dtype=INDEX),
+    )

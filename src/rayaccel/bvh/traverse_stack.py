@@ -1,0 +1,309 @@
+"""Ordered stack traversal of a binary BVH (Aila & Laine 2009 "while-while" loop).
+
+Each step reads one packed inner row (both children's boxes, 64 bytes), tests the
+two boxes against ``[tmin, t_closest]`` and descends into the nearer child by entry
+distance, pushing the farther one with its entry distance; ties go to child 0.
+Popped entries whose entry distance is beyond the closest hit found since they were
+pushed are discarded without being fetched. Leaves are tested with the watertight
+triangle test of Woop et al. 2013; boxes with the robust slab test of Ize 2013.
+Any-hit queries (``query="any"``) stop at the first hit in ``[tmin, tmax]``.
+
+The kernel is produced by a factory over compile-time constants (STYLE §4.3):
+``query`` (closest/any), ``with_stats`` (per-ray counters, pruned away in the plain
+variant) and ``parallel`` (``prange`` over rays, nogil). Each ray writes only its own
+output slots, so results are identical for every thread count.
+
+Counters (``with_stats``): ``steps`` loop iterations, ``nodes`` nodes entered
+(inner and leaf, root included), ``box_tests`` slab tests, ``prim_tests`` triangle
+tests, ``stack_peak`` deepest stack, ``bytes`` estimated bytes fetched (64 per
+inner row, 8 per leaf record, 40 per triangle and reference, 8 per stack push and
+pop).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_kernel
+from rayaccel._variant import register
+from rayaccel.bvh.layout import (
+    LEAF_BYTES,
+    PACKED_ROW_BYTES,
+    REF_BYTES,
+    STACK_ENTRY_BYTES,
+    STACK_SIZE,
+    TRIANGLE_BYTES,
+    Bvh2,
+    PackedBvh2,
+    pack_bvh2,
+)
+from rayaccel.config import parallel_section
+from rayaccel.counters import Counter, counters_to_dict, empty_counters
+from rayaccel.errors import InvalidInputError, TraversalOverflowError
+from rayaccel.kernels.aabb import ray_box_entry
+from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup
+from rayaccel.rays.batch import HitBatch, RayBatch
+from rayaccel.scene.mesh import TriangleMesh
+
+QUERY_CLOSEST = 0
+QUERY_ANY = 1
+QUERIES = {"closest": QUERY_CLOSEST, "any": QUERY_ANY}
+_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
+
+
+@dataclass(frozen=True, slots=True)
+class StackOptions:
+    """Options of the ``bvh2.stack`` traversal (it has none yet; kept for a uniform API)."""
+
+
+@functools.cache
+def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
+    """Return the compiled stack traversal for one (query, with_stats, parallel) variant."""
+
+    @cpu_kernel(parallel=parallel)
+    def kernel(bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters):
+        """Trace ``origin/direction (n, 3)`` over ``bvh`` (PackedArrays); write hits and counters.
+
+        ``counters`` is ``(n, N_COUNTERS)`` int32 with stats, a ``(0, N)`` placeholder without.
+        Returns the number of rays whose stack would have overflowed (always 0 for
+        trees built within ``MAX_DEPTH``).
+        """
+        _ = (query, with_stats, parallel)
+        overflow = 0
+        for r in prange(origin.shape[0]):
+            n_steps = 0
+            n_nodes = 0
+            n_box = 0
+            n_prim = 0
+            peak = 0
+            n_bytes = 0
+            ox = origin[r, 0]
+            oy = origin[r, 1]
+            oz = origin[r, 2]
+            dx = direction[r, 0]
+            dy = direction[r, 1]
+            dz = direction[r, 2]
+            t_lo = tmin[r]
+            # Inclusive tmax: the triangle test's upper bound is strict.
+            t_hit = np.nextafter(tmax[r], np.float32(np.inf))
+            # Degenerate rays (zero or non-finite direction or origin, empty interval) miss.
+            valid = (
+                t_lo <= tmax[r]
+                and not (dx == 0 and dy == 0 and dz == 0)
+                and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
+                and np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
+            )
+            if valid:
+                # Per-ray constants: reciprocal direction and near/far plane offsets.
+                ix = np.float32(1.0) / dx
+                iy = np.float32(1.0) / dy
+                iz = np.float32(1.0) / dz
+                nx = 0 if ix >= 0 else 1
+                ny = 2 if iy >= 0 else 3
+                nz = 4 if iz >= 0 else 5
+                fx = 1 - nx
+                fy = 5 - ny
+                fz = 9 - nz
+                kx, ky, kz, Sx, Sy, Sz = ray_triangle_setup(dx, dy, dz)
+                okx = origin[r, kx]
+                oky = origin[r, ky]
+                okz = origin[r, kz]
+                best_prim = -1
+                best_u = np.float32(0.0)
+                best_v = np.float32(0.0)
+                stack_ref = np.empty(STACK_SIZE, dtype=np.int32)
+                stack_t = np.empty(STACK_SIZE, dtype=np.float32)
+                sp = 0
+                # The root box is tested once up front.
+                rb = bvh.root_box
+                entry = ray_box_entry(ox, oy, oz, ix, iy, iz, rb[nx], rb[ny], rb[nz],
+                                      rb[fx], rb[fy], rb[fz], t_lo, t_hit)
+                if with_stats:
+                    n_box += 1
+                node = bvh.root_ref[0] if entry < np.inf else 0x7FFFFFFF
+                done = entry == np.inf
+                while not done:
+                    if with_stats:
+                        n_steps += 1
+                        n_nodes += 1
+                    if node >= 0:
+                        # Inner row: test both child boxes.
+                        row = bvh.inner_box[node]
+                        t0 = ray_box_entry(ox, oy, oz, ix, iy, iz, row[nx], row[ny], row[nz],
+                                           row[fx], row[fy], row[fz], t_lo, t_hit)
+                        t1 = ray_box_entry(ox, oy, oz, ix, iy, iz, row[6 + nx], row[6 + ny],
+                                           row[6 + nz], row[6 + fx], row[6 + fy], row[6 + fz],
+                                           t_lo, t_hit)
+                        if with_stats:
+                            n_box += 2
+                            n_bytes += PACKED_ROW_BYTES
+                        refs = bvh.inner_ref[node]
+                        if t0 < np.inf:
+                            if t1 < np.inf:
+                                # Both hit: descend into the nearer, push the farther.
+                                if t1 < t0:
+                                    node = refs[13]
+                                    far = refs[12]
+                                    t_far = t0
+                                else:
+                                    node = refs[12]
+                                    far = refs[13]
+                                    t_far = t1
+                                if sp < STACK_SIZE:
+                                    stack_ref[sp] = far
+                                    stack_t[sp] = t_far
+                                    sp += 1
+                                else:
+                                    overflow += 1
+                                    done = True
+                                if with_stats:
+                                    n_bytes += STACK_ENTRY_BYTES
+                                    if sp > peak:
+                                        peak = sp
+                                continue
+                            node = refs[12]
+                            continue
+                        if t1 < np.inf:
+                            node = refs[13]
+                            continue
+                    else:
+                        # Leaf: test its triangles, shrinking t_hit.
+                        leaf = ~node
+                        first = bvh.leaf_first[leaf]
+                        last = first + bvh.leaf_count[leaf]
+                        if with_stats:
+                            n_bytes += LEAF_BYTES + _PRIM_BYTES * (last - first)
+                        for i in range(first, last):
+                            t, u, v = ray_triangle(bvh.tri, i, okx, oky, okz, kx, ky, kz,
+                                                   Sx, Sy, Sz, t_lo, t_hit)
+                            if with_stats:
+                                n_prim += 1
+                            if t < t_hit:
+                                t_hit = t
+                                best_prim = bvh.tri_prim[i]
+                                best_u = u
+                                best_v = v
+                                if query == QUERY_ANY:
+                                    break
+                        if query == QUERY_ANY and best_prim >= 0:
+                            break
+                    # Pop the next entry still in front of the closest hit.
+                    done = True
+                    while sp > 0:
+                        sp -= 1
+                        if with_stats:
+                            n_bytes += STACK_ENTRY_BYTES
+                        if stack_t[sp] < t_hit:
+                            node = stack_ref[sp]
+                            done = False
+                            break
+                if best_prim >= 0:
+                    hit_t[r] = t_hit
+                    hit_prim[r] = best_prim
+                    hit_u[r] = best_u
+                    hit_v[r] = best_v
+            if with_stats:
+                counters[r, Counter.STEPS] = n_steps
+                counters[r, Counter.NODES] = n_nodes
+                counters[r, Counter.BOX_TESTS] = n_box
+                counters[r, Counter.PRIM_TESTS] = n_prim
+                counters[r, Counter.STACK_PEAK] = peak
+                counters[r, Counter.BYTES] = n_bytes
+        return overflow
+
+    return kernel
+
+
+#: Batches smaller than this run on the calling thread (no parallel launch overhead).
+PARALLEL_MIN_RAYS = 512
+
+
+def packed_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) -> PackedBvh2:
+    """Return the packed layout of ``bvh``, memoised in ``cache`` when given."""
+    if cache is not None and "bvh2.packed" in cache:
+        return cache["bvh2.packed"]  # type: ignore[no-any-return]
+    packed = pack_bvh2(bvh, mesh.triangles())
+    if cache is not None:
+        cache["bvh2.packed"] = packed
+    return packed
+
+
+def run_trace(kernel_for: Any, layout_arrays: Any, rays: RayBatch, query: str, stats: bool) -> HitBatch:
+    """Allocate outputs, run a ``kernel_for(query, stats, parallel)`` kernel, wrap the hits.
+
+    Shared by every BVH traversal whose kernel has the signature of :func:`trace_kernel`.
+    """
+    if query not in QUERIES:
+        raise InvalidInputError(f"query: expected 'closest' or 'any', got {query!r}")
+    n = rays.n_rays
+    hits = HitBatch.empty(n)
+    counters = empty_counters(n, stats)
+    parallel = n >= PARALLEL_MIN_RAYS
+    kernel = kernel_for(QUERIES[query], bool(stats), parallel)
+    if parallel:
+        with parallel_section():
+            overflow = kernel(layout_arrays, rays.origin, rays.direction, rays.tmin, rays.tmax,
+                              hits.t, hits.prim, hits.u, hits.v, counters)
+    else:
+        overflow = kernel(layout_arrays, rays.origin, rays.direction, rays.tmin, rays.tmax,
+                          hits.t, hits.prim, hits.u, hits.v, counters)
+    if overflow:
+        raise TraversalOverflowError(
+            f"{overflow} rays overflowed the {STACK_SIZE}-entry traversal stack; "
+            f"the tree is deeper than MAX_DEPTH"
+        )
+    if stats:
+        return HitBatch(hits.t, hits.prim, hits.u, hits.v, stats=counters_to_dict(counters))
+    return hits
+
+
+@register(
+    "traversal",
+    "bvh2.stack",
+    options=StackOptions,
+    summary="ordered stack traversal, near child first (closest and any hit)",
+    reference="Aila & Laine 2009, Understanding the Efficiency of Ray Traversal on GPUs",
+)
+def trace_bvh2_stack(
+    bvh: Bvh2,
+    mesh: TriangleMesh,
+    rays: RayBatch,
+    *,
+    query: str = "closest",
+    stats: bool = False,
+    options: StackOptions | None = None,
+    cache: dict[str, Any] | None = None,
+) -> HitBatch:
+    """Trace rays through a binary BVH with an ordered stack.
+
+    Parameters
+    ----------
+    bvh : Bvh2
+    mesh : TriangleMesh
+        The mesh ``bvh`` was built over.
+    rays : RayBatch
+    query : {"closest", "any"}
+    stats : bool
+        Also return per-ray counters in ``hits.stats``.
+    options : StackOptions, optional
+    cache : dict, optional
+        Memo for the derived packed layout (an ``Accel`` passes its own).
+
+    Returns
+    -------
+    HitBatch
+        For ``query="any"``, ``prim >= 0`` marks occluded rays (some hit, not the closest).
+
+    Raises
+    ------
+    TraversalOverflowError
+        Never for trees from rayaccel builders (depth is bounded by ``MAX_DEPTH``).
+    """
+    _ = options
+    packed = packed_layout(bvh, mesh, cache)
+    return run_trace(trace_kernel, packed.arrays(), rays, query, stats)

@@ -1,0 +1,48 @@
+"""Process-wide settings read from the environment, and the numba threading layer.
+
+``RAYACCEL_DEBUG=1``   run ``validate()`` after every build (pbrt's CHECK/DCHECK split).
+``RAYACCEL_SCENE_PATH`` os.pathsep-separated folders searched by ``rayaccel.scenes.get(name)``.
+
+Numba's default ``workqueue`` threading layer aborts the process when two Python
+threads enter parallel kernels at once. We therefore ask for a thread-safe layer
+(``tbb`` or ``omp``) when one is installed and otherwise serialise parallel
+kernel launches behind :data:`PARALLEL_LOCK` (see :func:`parallel_section`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+from collections.abc import Iterator
+
+import numba
+
+DEBUG: bool = os.environ.get("RAYACCEL_DEBUG", "0") not in ("", "0", "false", "False")
+SCENE_PATH_VAR = "RAYACCEL_SCENE_PATH"
+
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    # 'safe' picks tbb if present; otherwise numba falls back to what exists, and the
+    # lock below keeps workqueue from being entered concurrently.
+    numba.config.THREADING_LAYER_PRIORITY = ["tbb", "omp", "workqueue"]
+
+PARALLEL_LOCK = threading.RLock()
+
+
+def threading_layer_is_threadsafe() -> bool:
+    """Return whether the active numba threading layer tolerates concurrent launches."""
+    try:
+        layer = numba.threading_layer()
+    except ValueError:  # no parallel kernel has run yet: layer not chosen
+        return False
+    return layer in ("tbb", "omp")
+
+
+@contextlib.contextmanager
+def parallel_section() -> Iterator[None]:
+    """Serialise parallel kernel launches unless the threading layer is thread-safe."""
+    if threading_layer_is_threadsafe():
+        yield
+        return
+    with PARALLEL_LOCK:
+        yield

@@ -1,0 +1,141 @@
+"""Watertight ray/triangle intersection (Woop, Benthin, Wald 2013, JCGT 2(1)).
+
+The ray is transformed so that its direction becomes the unit +z axis: the
+dominant axis ``kz`` of the direction becomes z, the other two are permuted to
+keep the winding, and a shear maps the direction onto z. Each vertex is then
+reduced to 2D sheared coordinates, and the three 2D edge functions ``U, V, W``
+decide the hit with no epsilon: a point on a shared edge is classified the same
+way from both triangles, so no ray slips between them. When an edge function is
+exactly zero it is recomputed in float64, as the paper prescribes, so the sign
+test stays consistent along shared edges and at vertices.
+
+Two functions: :func:`ray_triangle_setup_py` computes the per-ray constants
+``(kx, ky, kz, Sx, Sy, Sz)`` once; :func:`ray_triangle_py` tests one triangle
+stored as a row ``[Ax, Ay, Az, Bx, By, Bz, Cx, Cy, Cz]`` of a float32 array. The
+hit distance is accepted when ``tmin <= t < tmax`` (strict upper bound, so the
+first triangle found wins an exact tie). Zero-area and degenerate triangles have
+``det == 0`` and are never hit. Both compile for the CPU below and serve as the
+oracle's test (tests use the very same function).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rayaccel._jit import cpu_inline
+
+F32_ONE = np.float32(1.0)
+F32_ZERO = np.float32(0.0)
+F32_INF = np.float32(np.inf)
+
+
+def ray_triangle_setup_py(dx, dy, dz):
+    """Return the per-ray shear constants ``(kx, ky, kz, Sx, Sy, Sz)``.
+
+    Parameters
+    ----------
+    dx, dy, dz : float32
+        Ray direction; must not be all zero (callers skip such rays).
+
+    Returns
+    -------
+    kx, ky, kz : int
+        Axis permutation: ``kz`` is the dominant axis of ``|d|``.
+    Sx, Sy, Sz : float32
+        Shear ``d[kx]/d[kz]``, ``d[ky]/d[kz]`` and scale ``1/d[kz]``.
+    """
+    ax = abs(dx)
+    ay = abs(dy)
+    az = abs(dz)
+    # Dominant axis becomes z.
+    kz = 0
+    dkz = dx
+    if ay > ax and ay >= az:
+        kz = 1
+        dkz = dy
+    elif az > ax and az > ay:
+        kz = 2
+        dkz = dz
+    kx = kz + 1
+    if kx == 3:
+        kx = 0
+    ky = kx + 1
+    if ky == 3:
+        ky = 0
+    # Swap kx and ky to preserve the winding when the dominant component is negative.
+    if dkz < F32_ZERO:
+        kx, ky = ky, kx
+    dkx = dx if kx == 0 else (dy if kx == 1 else dz)
+    dky = dx if ky == 0 else (dy if ky == 1 else dz)
+    Sx = dkx / dkz
+    Sy = dky / dkz
+    Sz = F32_ONE / dkz
+    return kx, ky, kz, Sx, Sy, Sz
+
+
+def ray_triangle_py(tri, row, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, tmin, tmax):
+    """Intersect one triangle; return ``(t, u, v)`` with ``t = inf`` on a miss.
+
+    Parameters
+    ----------
+    tri : (n, 9) float32 array
+        Triangle corners ``A, B, C`` per row.
+    row : int
+        Row of ``tri`` to test.
+    okx, oky, okz : float32
+        Ray origin permuted by ``(kx, ky, kz)``.
+    kx, ky, kz, Sx, Sy, Sz
+        Constants from :func:`ray_triangle_setup_py`.
+    tmin, tmax : float32
+        Accept hits with ``tmin <= t < tmax``.
+
+    Returns
+    -------
+    t, u, v : float32
+        Distance and barycentrics of the hit (``(1-u-v)·A + u·B + v·C``).
+    """
+    # Vertices relative to the ray origin, in the permuted frame.
+    Akx = tri[row, kx] - okx
+    Aky = tri[row, ky] - oky
+    Akz = tri[row, kz] - okz
+    Bkx = tri[row, 3 + kx] - okx
+    Bky = tri[row, 3 + ky] - oky
+    Bkz = tri[row, 3 + kz] - okz
+    Ckx = tri[row, 6 + kx] - okx
+    Cky = tri[row, 6 + ky] - oky
+    Ckz = tri[row, 6 + kz] - okz
+    # Shear so the ray runs along +z.
+    Ax = Akx - Sx * Akz
+    Ay = Aky - Sy * Akz
+    Bx = Bkx - Sx * Bkz
+    By = Bky - Sy * Bkz
+    Cx = Ckx - Sx * Ckz
+    Cy = Cky - Sy * Ckz
+    # Scaled barycentrics: 2D edge functions.
+    U = Cx * By - Cy * Bx
+    V = Ax * Cy - Ay * Cx
+    W = Bx * Ay - By * Ax
+    # Exactly zero: redo in double precision for a consistent edge classification.
+    if U == F32_ZERO or V == F32_ZERO or W == F32_ZERO:
+        U = np.float32(np.float64(Cx) * np.float64(By) - np.float64(Cy) * np.float64(Bx))
+        V = np.float32(np.float64(Ax) * np.float64(Cy) - np.float64(Ay) * np.float64(Cx))
+        W = np.float32(np.float64(Bx) * np.float64(Ay) - np.float64(By) * np.float64(Ax))
+    # Edge test without backface culling.
+    if (U < F32_ZERO or V < F32_ZERO or W < F32_ZERO) and (
+        U > F32_ZERO or V > F32_ZERO or W > F32_ZERO
+    ):
+        return F32_INF, F32_ZERO, F32_ZERO
+    det = U + V + W
+    if det == F32_ZERO:
+        return F32_INF, F32_ZERO, F32_ZERO
+    # Scaled hit distance; divide once.
+    T = U * (Sz * Akz) + V * (Sz * Bkz) + W * (Sz * Ckz)
+    rcp = F32_ONE / det
+    t = T * rcp
+    if t >= tmin and t < tmax:
+        return t, V * rcp, W * rcp
+    return F32_INF, F32_ZERO, F32_ZERO
+
+
+ray_triangle_setup = cpu_inline(ray_triangle_setup_py)
+ray_triangle = cpu_inline(ray_triangle_py)

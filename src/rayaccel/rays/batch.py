@@ -1,0 +1,151 @@
+"""Batches of rays and of their hits, as flat float32/int32 arrays (STYLE §3).
+
+A :class:`RayBatch` is what every traversal takes: origins and directions
+``(n, 3)`` float32 and per-ray ``tmin``/``tmax`` ``(n,)`` float32. Directions need
+not be normalised; ``t`` is measured in units of the direction's length. Rays with
+a zero-length or non-finite direction, a non-finite origin, or ``tmin > tmax`` are
+kept in the batch and defined to miss (the traversal never enters them).
+
+A :class:`HitBatch` is what a closest-hit query returns: ``t`` (``inf`` on a miss),
+``prim`` (``-1`` on a miss) and the barycentrics ``u, v`` of the hit point
+``(1-u-v)·A + u·B + v·C``; ``stats`` maps counter names to ``(n,)`` int32 arrays
+when statistics were requested.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rayaccel.dtypes import INDEX, REAL, BoolArray, FloatArray, IntArray
+from rayaccel.errors import InvalidInputError
+
+
+def _as_vectors(name: str, value: object, n: int | None) -> FloatArray:
+    try:
+        array = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name}: expected an (n, 3) float array ({exc})") from exc
+    if array.ndim == 1 and array.shape[0] == 3 and n is not None:
+        array = np.broadcast_to(array, (n, 3))
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidInputError(f"{name}: expected shape (n, 3), got {array.shape}")
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise InvalidInputError(f"{name}: expected a float array, got dtype {array.dtype}")
+    if n is not None and array.shape[0] != n:
+        raise InvalidInputError(f"{name}: expected {n} rows to match origins, got {array.shape[0]}")
+    return np.ascontiguousarray(array, dtype=REAL)
+
+
+def _as_interval(name: str, value: object, n: int) -> FloatArray:
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name}: expected a float scalar or an (n,) array ({exc})") from exc
+    if array.ndim == 0:
+        array = np.full(n, array, dtype=np.float64)
+    if array.shape != (n,):
+        raise InvalidInputError(f"{name}: expected a scalar or shape ({n},), got {array.shape}")
+    if np.isnan(array).any():
+        raise InvalidInputError(f"{name}: contains NaN at index {int(np.argmax(np.isnan(array)))}")
+    return np.ascontiguousarray(array, dtype=REAL)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RayBatch:
+    """A batch of rays ``o + t·d`` for ``t`` in ``[tmin, tmax]``.
+
+    Parameters
+    ----------
+    origin, direction : (n, 3) array_like of float
+        Coerced once to C-contiguous float32. A single (3,) direction or origin
+        is broadcast to the other's length.
+    tmin, tmax : float or (n,) array_like of float
+        Ray interval; scalars are broadcast. Defaults ``0`` and ``inf``.
+    """
+
+    origin: FloatArray
+    direction: FloatArray
+    tmin: FloatArray = field(default=None)  # type: ignore[assignment]
+    tmax: FloatArray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        origin_raw = np.asarray(self.origin)
+        direction_raw = np.asarray(self.direction)
+        n = None
+        if origin_raw.ndim == 2:
+            n = origin_raw.shape[0]
+        elif direction_raw.ndim == 2:
+            n = direction_raw.shape[0]
+        origin = _as_vectors("origins", origin_raw, n)
+        n = origin.shape[0]
+        direction = _as_vectors("directions", direction_raw, n)
+        tmin = _as_interval("tmin", 0.0 if self.tmin is None else self.tmin, n)
+        tmax = _as_interval("tmax", np.inf if self.tmax is None else self.tmax, n)
+        for name, value in (("origin", origin), ("direction", direction), ("tmin", tmin), ("tmax", tmax)):
+            object.__setattr__(self, name, value)
+
+    def __len__(self) -> int:
+        return int(self.origin.shape[0])
+
+    @property
+    def n_rays(self) -> int:
+        """Number of rays."""
+        return int(self.origin.shape[0])
+
+    def valid(self) -> BoolArray:
+        """Return which rays can hit anything: finite origin, finite non-zero direction, tmin <= tmax."""
+        finite = np.isfinite(self.origin).all(axis=1) & np.isfinite(self.direction).all(axis=1)
+        nonzero = (self.direction != 0).any(axis=1)
+        return finite & nonzero & (self.tmin <= self.tmax)
+
+    def subset(self, index: object) -> RayBatch:
+        """Return the rays selected by ``index`` (a slice, mask or index array)."""
+        return RayBatch(self.origin[index], self.direction[index], self.tmin[index], self.tmax[index])
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class HitBatch:
+    """Closest hits of a :class:`RayBatch`.
+
+    Attributes
+    ----------
+    t : (n,) float32
+        Hit distance in units of the ray direction; ``inf`` on a miss.
+    prim : (n,) int32
+        Index of the hit triangle in the mesh; ``-1`` on a miss.
+    u, v : (n,) float32
+        Barycentric coordinates of the hit on the triangle (0 on a miss).
+    stats : dict of str to (n,) int32, or None
+        Per-ray traversal counters by name, when requested.
+    """
+
+    t: FloatArray
+    prim: IntArray
+    u: FloatArray
+    v: FloatArray
+    stats: dict[str, IntArray] | None = None
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def hit(self) -> BoolArray:
+        """``(n,)`` bool: whether each ray hit something."""
+        return self.prim >= 0
+
+    def points(self, rays: RayBatch) -> FloatArray:
+        """Return the ``(n, 3)`` float32 hit points ``o + t·d`` (NaN on a miss)."""
+        t = np.where(self.hit, self.t, np.nan).astype(REAL)
+        return (rays.origin + t[:, None] * rays.direction).astype(REAL)
+
+    @staticmethod
+    def empty(n: int) -> HitBatch:
+        """Return ``n`` misses."""
+        return HitBatch(
+            t=np.full(n, np.inf, dtype=REAL),
+            prim=np.full(n, -1, dtype=INDEX),
+            u=np.zeros(n, dtype=REAL),
+            v=np.zeros(n, dtype=REAL),
+        )

@@ -1,0 +1,67 @@
+"""The variant registry: every builder and traversal, enumerable by key (STYLE §6).
+
+Builders register as ``<structure>.<algorithm>`` (``bvh2.binned_sah``) and
+traversals as ``<structure>.<method>`` (``bvh2.stack``), each with an options
+dataclass whose fields are the keyword options users may pass. The CLI, the
+benchmark matrix and the conformance tests enumerate the registry, so a new
+variant edits none of them. Modules are imported lazily from the explicit
+:data:`BUILTIN_MODULES` tuple the first time the registry is read.
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib
+
+from rayaccel._variant import REGISTRY, Role, Variant, register
+from rayaccel.errors import UnknownVariantError
+
+__all__ = ["BUILTIN_MODULES", "Role", "Variant", "get", "keys", "register", "variants"]
+
+#: Every module that registers variants (a test checks no build_/traverse_ module is missing).
+BUILTIN_MODULES: tuple[str, ...] = (
+    "rayaccel.bvh.build_binned_sah",
+    "rayaccel.bvh.build_sweep_sah",
+    "rayaccel.bvh.traverse_stack",
+)
+
+
+_loaded = False
+
+
+def _load() -> None:
+    global _loaded
+    if not _loaded:
+        _loaded = True
+        for module in BUILTIN_MODULES:
+            importlib.import_module(module)
+
+
+def variants(role: Role | None = None, structure: str | None = None) -> list[Variant]:
+    """Return registered variants, sorted by key, optionally filtered."""
+    _load()
+    return [
+        v
+        for key, v in sorted(REGISTRY.items())
+        if (role is None or v.role == role) and (structure is None or v.structure == structure)
+    ]
+
+
+def keys(role: Role | None = None, structure: str | None = None) -> list[str]:
+    """Return registered keys, sorted."""
+    return [v.key for v in variants(role, structure)]
+
+
+def get(key: str, role: Role | None = None) -> Variant:
+    """Return the variant ``key``; unknown keys raise with close matches."""
+    _load()
+    variant = REGISTRY.get(key)
+    if variant is None or (role is not None and variant.role != role):
+        candidates = keys(role)
+        close = difflib.get_close_matches(key, candidates, n=3, cutoff=0.5)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        kind = role or "variant"
+        raise UnknownVariantError(
+            f"unknown {kind} {key!r}{hint} (known: {', '.join(candidates)})"
+        )
+    return variant

@@ -1,0 +1,136 @@
+"""Triangle meshes: the one geometry type every structure is built over.
+
+A :class:`TriangleMesh` holds a float32 ``(V, 3)`` vertex array and an int32
+``(F, 3)`` face array, both C-contiguous, validated once at construction:
+non-finite vertices are rejected with the offending index, face indices must lie
+in ``[0, V)``, and a mesh must have at least one triangle. Zero-area triangles
+are kept (a correct ray/triangle test never reports a hit on them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+from rayaccel.errors import InvalidInputError
+
+
+def _coerce_vertices(vertices: object) -> FloatArray:
+    try:
+        array = np.asarray(vertices)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"vertices: expected a (V, 3) float array, got {exc}") from exc
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidInputError(f"vertices: expected shape (V, 3), got {array.shape}")
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise InvalidInputError(f"vertices: expected a float array, got dtype {array.dtype}")
+    finite = np.isfinite(array)
+    if not finite.all():
+        bad = int(np.argwhere(~finite.all(axis=1))[0, 0])
+        raise InvalidInputError(
+            f"vertices: vertex {bad} is not finite ({array[bad].tolist()}); "
+            f"{int((~finite.all(axis=1)).sum())} non-finite vertices in all"
+        )
+    coerced = np.ascontiguousarray(array, dtype=REAL)
+    if not np.isfinite(coerced).all():
+        bad = int(np.argwhere(~np.isfinite(coerced).all(axis=1))[0, 0])
+        raise InvalidInputError(
+            f"vertices: vertex {bad} overflows float32 ({array[bad].tolist()})"
+        )
+    return coerced
+
+
+def _coerce_faces(faces: object, n_vertices: int) -> IntArray:
+    try:
+        array = np.asarray(faces)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"faces: expected a (F, 3) int array, got {exc}") from exc
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidInputError(f"faces: expected shape (F, 3), got {array.shape}")
+    if array.shape[0] == 0:
+        raise InvalidInputError("faces: the mesh is empty (0 triangles)")
+    if np.issubdtype(array.dtype, np.floating):
+        if not np.all(np.isfinite(array)) or not np.all(array == np.round(array)):
+            raise InvalidInputError("faces: expected integer vertex indices, got non-integers")
+    elif not np.issubdtype(array.dtype, np.integer):
+        raise InvalidInputError(f"faces: expected an int array, got dtype {array.dtype}")
+    low, high = array.min(), array.max()
+    if low < 0 or high >= n_vertices:
+        bad_mask = (array < 0) | (array >= n_vertices)
+        face = int(np.argwhere(bad_mask.any(axis=1))[0, 0])
+        raise InvalidInputError(
+            f"faces: face {face} has vertex index out of range [0, {n_vertices}): "
+            f"{array[face].tolist()}"
+        )
+    return np.ascontiguousarray(array, dtype=INDEX)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TriangleMesh:
+    """An indexed triangle mesh.
+
+    Parameters
+    ----------
+    vertices : (V, 3) array_like of float
+        Vertex positions; coerced once to C-contiguous float32. Every vertex must be finite.
+    faces : (F, 3) array_like of int
+        Vertex indices of each triangle; coerced to int32, each in ``[0, V)``; ``F >= 1``.
+    name : str
+        A label used in reports.
+
+    Raises
+    ------
+    InvalidInputError
+        Wrong shapes, non-finite vertices (the index is named), out-of-range
+        indices (the face is named) or an empty face list.
+    """
+
+    vertices: FloatArray
+    faces: IntArray
+    name: str = field(default="mesh")
+
+    def __post_init__(self) -> None:
+        vertices = _coerce_vertices(self.vertices)
+        object.__setattr__(self, "vertices", vertices)
+        object.__setattr__(self, "faces", _coerce_faces(self.faces, vertices.shape[0]))
+        self.vertices.flags.writeable = False
+        self.faces.flags.writeable = False
+
+    @property
+    def n_triangles(self) -> int:
+        """Number of triangles ``F``."""
+        return int(self.faces.shape[0])
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of vertices ``V``."""
+        return int(self.vertices.shape[0])
+
+    def triangles(self) -> FloatArray:
+        """Return the ``(F, 3, 3)`` float32 corner positions of every triangle."""
+        return np.ascontiguousarray(self.vertices[self.faces])
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        """Return ``(lo, hi)``, the float32 bounding box of the referenced vertices."""
+        used = self.vertices[self.faces.reshape(-1)]
+        return used.min(axis=0), used.max(axis=0)
+
+    def areas(self) -> FloatArray:
+        """Return the ``(F,)`` float32 triangle areas (computed in float64)."""
+        tri = self.triangles().astype(np.float64)
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        return (0.5 * np.linalg.norm(cross, axis=1)).astype(REAL)
+
+    def normals(self) -> FloatArray:
+        """Return ``(F, 3)`` float32 unit geometric normals (zero for zero-area triangles)."""
+        tri = self.triangles().astype(np.float64)
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(cross, axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            unit = np.where(length > 0, cross / np.where(length > 0, length, 1.0), 0.0)
+        return unit.astype(REAL)
+
+    def __repr__(self) -> str:
+        return f"TriangleMesh(name={self.name!r}, n_triangles={self.n_triangles}, n_vertices={self.n_vertices})"
