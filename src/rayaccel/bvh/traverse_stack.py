@@ -26,6 +26,7 @@ import functools
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 from numba import prange
 
@@ -52,6 +53,11 @@ from rayaccel.scene.mesh import TriangleMesh
 
 QUERY_CLOSEST = 0
 QUERY_ANY = 1
+#: Rays per parallel work item (one stack allocation each).
+RAY_CHUNK = 64
+INF32 = np.float32(np.inf)
+ONE32 = np.float32(1.0)
+ZERO32 = np.float32(0.0)
 QUERIES = {"closest": QUERY_CLOSEST, "any": QUERY_ANY}
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
 
@@ -75,145 +81,154 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         """
         _ = (query, with_stats, parallel)
         overflow = 0
-        for r in prange(origin.shape[0]):
-            n_steps = 0
-            n_nodes = 0
-            n_box = 0
-            n_prim = 0
-            peak = 0
-            n_bytes = 0
-            ox = origin[r, 0]
-            oy = origin[r, 1]
-            oz = origin[r, 2]
-            dx = direction[r, 0]
-            dy = direction[r, 1]
-            dz = direction[r, 2]
-            t_lo = tmin[r]
-            # Inclusive tmax: the triangle test's upper bound is strict.
-            t_hit = np.nextafter(tmax[r], np.float32(np.inf))
-            # Degenerate rays (zero or non-finite direction or origin, empty interval) miss.
-            valid = (
-                t_lo <= tmax[r]
-                and not (dx == 0 and dy == 0 and dz == 0)
-                and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
-                and np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
-            )
-            if valid:
-                # Per-ray constants: reciprocal direction and near/far plane offsets.
-                ix = np.float32(1.0) / dx
-                iy = np.float32(1.0) / dy
-                iz = np.float32(1.0) / dz
-                nx = 0 if ix >= 0 else 1
-                ny = 2 if iy >= 0 else 3
-                nz = 4 if iz >= 0 else 5
-                fx = 1 - nx
-                fy = 5 - ny
-                fz = 9 - nz
-                kx, ky, kz, Sx, Sy, Sz = ray_triangle_setup(dx, dy, dz)
-                okx = origin[r, kx]
-                oky = origin[r, ky]
-                okz = origin[r, kz]
+        n_rays = origin.shape[0]
+        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
+        box = bvh.inner_box
+        refs = bvh.inner_ref
+        # Chunks of consecutive rays (coherent rays together, one stack allocation each);
+        # the wrapper hands them out dynamically so a slow chunk does not stall the batch.
+        for chunk in prange(n_chunks):
+            stack_ref = np.empty(STACK_SIZE, dtype=np.int32)
+            stack_t = np.empty(STACK_SIZE, dtype=np.float32)
+            for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
+                n_steps = 0
+                n_nodes = 0
+                n_box = 0
+                n_prim = 0
+                peak = 0
+                n_bytes = 0
+                ox = origin[r, 0]
+                oy = origin[r, 1]
+                oz = origin[r, 2]
+                dx = direction[r, 0]
+                dy = direction[r, 1]
+                dz = direction[r, 2]
+                t_lo = tmin[r]
+                # Inclusive tmax: the triangle test's upper bound is strict.
+                t_hit = np.nextafter(tmax[r], INF32)
                 best_prim = -1
-                best_u = np.float32(0.0)
-                best_v = np.float32(0.0)
-                stack_ref = np.empty(STACK_SIZE, dtype=np.int32)
-                stack_t = np.empty(STACK_SIZE, dtype=np.float32)
-                sp = 0
-                # The root box is tested once up front.
-                rb = bvh.root_box
-                entry = ray_box_entry(ox, oy, oz, ix, iy, iz, rb[nx], rb[ny], rb[nz],
-                                      rb[fx], rb[fy], rb[fz], t_lo, t_hit)
-                if with_stats:
-                    n_box += 1
-                node = bvh.root_ref[0] if entry < np.inf else 0x7FFFFFFF
-                done = entry == np.inf
-                while not done:
+                # Degenerate rays (zero or non-finite direction or origin, empty interval) miss.
+                valid = (
+                    t_lo <= tmax[r]
+                    and not (dx == 0 and dy == 0 and dz == 0)
+                    and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
+                    and np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
+                )
+                if valid:
+                    # Per-ray constants: reciprocal direction and near/far plane offsets.
+                    ix = ONE32 / dx
+                    iy = ONE32 / dy
+                    iz = ONE32 / dz
+                    nx = 0 if ix >= 0 else 1
+                    ny = 2 if iy >= 0 else 3
+                    nz = 4 if iz >= 0 else 5
+                    fx = 1 - nx
+                    fy = 5 - ny
+                    fz = 9 - nz
+                    kx, ky, kz, Sx, Sy, Sz = ray_triangle_setup(dx, dy, dz)
+                    okx = origin[r, kx]
+                    oky = origin[r, ky]
+                    okz = origin[r, kz]
+                    best_u = ZERO32
+                    best_v = ZERO32
+                    sp = 0
+                    # The root box is tested once up front.
+                    rb = bvh.root_box
+                    entry = ray_box_entry(ox, oy, oz, ix, iy, iz, rb[nx], rb[ny], rb[nz],
+                                          rb[fx], rb[fy], rb[fz], t_lo, t_hit)
                     if with_stats:
-                        n_steps += 1
-                        n_nodes += 1
-                    if node >= 0:
-                        # Inner row: test both child boxes.
-                        row = bvh.inner_box[node]
-                        t0 = ray_box_entry(ox, oy, oz, ix, iy, iz, row[nx], row[ny], row[nz],
-                                           row[fx], row[fy], row[fz], t_lo, t_hit)
-                        t1 = ray_box_entry(ox, oy, oz, ix, iy, iz, row[6 + nx], row[6 + ny],
-                                           row[6 + nz], row[6 + fx], row[6 + fy], row[6 + fz],
-                                           t_lo, t_hit)
+                        n_box += 1
+                    node = bvh.root_ref[0]
+                    done = entry == INF32
+                    while not done:
                         if with_stats:
-                            n_box += 2
-                            n_bytes += PACKED_ROW_BYTES
-                        refs = bvh.inner_ref[node]
-                        if t0 < np.inf:
-                            if t1 < np.inf:
+                            n_steps += 1
+                            n_nodes += 1
+                        if node >= 0:
+                            # Inner row: test both children's boxes from one 64-byte row.
+                            t0 = ray_box_entry(ox, oy, oz, ix, iy, iz,
+                                               box[node, nx], box[node, ny], box[node, nz],
+                                               box[node, fx], box[node, fy], box[node, fz],
+                                               t_lo, t_hit)
+                            t1 = ray_box_entry(ox, oy, oz, ix, iy, iz,
+                                               box[node, 6 + nx], box[node, 6 + ny],
+                                               box[node, 6 + nz], box[node, 6 + fx],
+                                               box[node, 6 + fy], box[node, 6 + fz],
+                                               t_lo, t_hit)
+                            c0 = refs[node, 12]
+                            c1 = refs[node, 13]
+                            if with_stats:
+                                n_box += 2
+                                n_bytes += PACKED_ROW_BYTES
+                            if t0 < INF32 and t1 < INF32:
                                 # Both hit: descend into the nearer, push the farther.
                                 if t1 < t0:
-                                    node = refs[13]
-                                    far = refs[12]
+                                    node = c1
+                                    far = c0
                                     t_far = t0
                                 else:
-                                    node = refs[12]
-                                    far = refs[13]
+                                    node = c0
+                                    far = c1
                                     t_far = t1
-                                if sp < STACK_SIZE:
-                                    stack_ref[sp] = far
-                                    stack_t[sp] = t_far
-                                    sp += 1
-                                else:
+                                if sp == STACK_SIZE:
                                     overflow += 1
-                                    done = True
+                                    break
+                                stack_ref[sp] = far
+                                stack_t[sp] = t_far
+                                sp += 1
                                 if with_stats:
                                     n_bytes += STACK_ENTRY_BYTES
-                                    if sp > peak:
-                                        peak = sp
+                                    peak = max(peak, sp)
                                 continue
-                            node = refs[12]
-                            continue
-                        if t1 < np.inf:
-                            node = refs[13]
-                            continue
-                    else:
-                        # Leaf: test its triangles, shrinking t_hit.
-                        leaf = ~node
-                        first = bvh.leaf_first[leaf]
-                        last = first + bvh.leaf_count[leaf]
-                        if with_stats:
-                            n_bytes += LEAF_BYTES + _PRIM_BYTES * (last - first)
-                        for i in range(first, last):
-                            t, u, v = ray_triangle(bvh.tri, i, okx, oky, okz, kx, ky, kz,
-                                                   Sx, Sy, Sz, t_lo, t_hit)
+                            if t0 < INF32:
+                                node = c0
+                                continue
+                            if t1 < INF32:
+                                node = c1
+                                continue
+                        else:
+                            # Leaf: test its triangles, shrinking t_hit.
+                            leaf = ~node
+                            first = bvh.leaf_first[leaf]
+                            last = first + bvh.leaf_count[leaf]
                             if with_stats:
-                                n_prim += 1
-                            if t < t_hit:
-                                t_hit = t
-                                best_prim = bvh.tri_prim[i]
-                                best_u = u
-                                best_v = v
-                                if query == QUERY_ANY:
-                                    break
-                        if query == QUERY_ANY and best_prim >= 0:
-                            break
-                    # Pop the next entry still in front of the closest hit.
-                    done = True
-                    while sp > 0:
-                        sp -= 1
-                        if with_stats:
-                            n_bytes += STACK_ENTRY_BYTES
-                        if stack_t[sp] < t_hit:
-                            node = stack_ref[sp]
-                            done = False
-                            break
-                if best_prim >= 0:
-                    hit_t[r] = t_hit
-                    hit_prim[r] = best_prim
-                    hit_u[r] = best_u
-                    hit_v[r] = best_v
-            if with_stats:
-                counters[r, Counter.STEPS] = n_steps
-                counters[r, Counter.NODES] = n_nodes
-                counters[r, Counter.BOX_TESTS] = n_box
-                counters[r, Counter.PRIM_TESTS] = n_prim
-                counters[r, Counter.STACK_PEAK] = peak
-                counters[r, Counter.BYTES] = n_bytes
+                                n_bytes += LEAF_BYTES + _PRIM_BYTES * (last - first)
+                            for i in range(first, last):
+                                t, u, v = ray_triangle(bvh.tri, i, okx, oky, okz, kx, ky, kz,
+                                                       Sx, Sy, Sz, t_lo, t_hit)
+                                if with_stats:
+                                    n_prim += 1
+                                if t < t_hit:
+                                    t_hit = t
+                                    best_prim = bvh.tri_prim[i]
+                                    best_u = u
+                                    best_v = v
+                                    if query == QUERY_ANY:
+                                        break
+                            if query == QUERY_ANY and best_prim >= 0:
+                                break
+                        # Pop the next entry still in front of the closest hit.
+                        done = True
+                        while sp > 0:
+                            sp -= 1
+                            if with_stats:
+                                n_bytes += STACK_ENTRY_BYTES
+                            if stack_t[sp] < t_hit:
+                                node = stack_ref[sp]
+                                done = False
+                                break
+                    if best_prim >= 0:
+                        hit_t[r] = t_hit
+                        hit_prim[r] = best_prim
+                        hit_u[r] = best_u
+                        hit_v[r] = best_v
+                if with_stats:
+                    counters[r, Counter.STEPS] = n_steps
+                    counters[r, Counter.NODES] = n_nodes
+                    counters[r, Counter.BOX_TESTS] = n_box
+                    counters[r, Counter.PRIM_TESTS] = n_prim
+                    counters[r, Counter.STACK_PEAK] = peak
+                    counters[r, Counter.BYTES] = n_bytes
         return overflow
 
     return kernel
@@ -246,7 +261,7 @@ def run_trace(kernel_for: Any, layout_arrays: Any, rays: RayBatch, query: str, s
     parallel = n >= PARALLEL_MIN_RAYS
     kernel = kernel_for(QUERIES[query], bool(stats), parallel)
     if parallel:
-        with parallel_section():
+        with parallel_section(), numba.parallel_chunksize(1):
             overflow = kernel(layout_arrays, rays.origin, rays.direction, rays.tmin, rays.tmax,
                               hits.t, hits.prim, hits.u, hits.v, counters)
     else:

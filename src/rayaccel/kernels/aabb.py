@@ -7,7 +7,7 @@ passes the box plane the ray meets first (``near``: the low plane when
 per-axis swap is needed (Williams' sign trick).
 
 Robustness (Ize 2013): slab distances are computed as ``(plane - o) * inv`` and
-only the exit distance is enlarged by two float32 ulps (``1 + 2^-22``), which
+only the exit distance is enlarged by two float32 ulps (``|t|·2^-22``), which
 closes every false miss caused by rounding; a false hit merely visits one more
 node. A ray lying exactly in a slab plane with a zero direction component gives
 ``0 * inf = NaN``; the comparisons below treat NaN as "no constraint", so such a
@@ -24,8 +24,8 @@ import numpy as np
 
 from rayaccel._jit import cpu_inline
 
-#: Exit distances are multiplied by this (1 + 2 ulp in float32), Ize 2013 §3.
-EXIT_SCALE = np.float32(1.0000002384185791)
+#: Exit distances grow by this relative amount (2 ulp in float32, 1 + 2^-22), Ize 2013 §3.
+TWO_ULP = np.float32(2.0**-22)
 INF = np.float32(np.inf)
 
 
@@ -63,13 +63,17 @@ def ray_box_entry_py(ox, oy, oz, ix, iy, iz, near_x, near_y, near_z, far_x, far_
         entry = t0y
     if t0z > entry:
         entry = t0z
-    leave = tmax
-    if t1x * EXIT_SCALE < leave:
-        leave = t1x * EXIT_SCALE
-    if t1y * EXIT_SCALE < leave:
-        leave = t1y * EXIT_SCALE
-    if t1z * EXIT_SCALE < leave:
-        leave = t1z * EXIT_SCALE
+    # Exit: the nearest far plane (NaN ignored), enlarged by 2 ulp as Ize prescribes.
+    leave = INF
+    if t1x < leave:
+        leave = t1x
+    if t1y < leave:
+        leave = t1y
+    if t1z < leave:
+        leave = t1z
+    leave = leave + abs(leave) * TWO_ULP
+    if tmax < leave:
+        leave = tmax
     if entry <= leave:
         return entry
     return INF

@@ -36,9 +36,7 @@ def _coerce_vertices(vertices: object) -> FloatArray:
     coerced = np.ascontiguousarray(array, dtype=REAL)
     if not np.isfinite(coerced).all():
         bad = int(np.argwhere(~np.isfinite(coerced).all(axis=1))[0, 0])
-        raise InvalidInputError(
-            f"vertices: vertex {bad} overflows float32 ({array[bad].tolist()})"
-        )
+        raise InvalidInputError(f"vertices: vertex {bad} overflows float32 ({array[bad].tolist()})")
     return coerced
 
 
