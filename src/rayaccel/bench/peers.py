@@ -140,7 +140,7 @@ class Peer:
         return rays
 
     def intersect(self, rays: Any) -> tuple[FloatArray, IntArray]:
-        """Return closest hits ``(t, prim)``: ``(n,)`` float32 and int32, ``inf``/``-1`` on a miss."""
+        """Return closest hits ``(t, prim)``, (n,) float32 and int32; ``inf``/``-1`` on a miss."""
         raise NotImplementedError
 
     def occluded(self, rays: Any) -> BoolArray:
@@ -369,7 +369,8 @@ def parse_peers(spec: str | list[str] | tuple[str, ...] | None) -> list[str]:
     """
     if spec is None:
         return list(PEERS)
-    items = spec.split(",") if isinstance(spec, str) else [s for part in spec for s in part.split(",")]
+    parts = [spec] if isinstance(spec, str) else list(spec)
+    items = [item for part in parts for item in part.split(",")]
     names = [item.strip() for item in items if item.strip()]
     if names in (["none"], []):
         return []

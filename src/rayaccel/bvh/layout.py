@@ -274,6 +274,20 @@ class PackedArrays(NamedTuple):
     root_ref: IntArray  # (1,)
 
 
+CACHE_LINE = 64
+
+
+def aligned_zeros(shape: tuple[int, ...], dtype: type, alignment: int) -> np.ndarray:
+    """Return a zeroed C-contiguous array whose data starts on an ``alignment``-byte boundary.
+
+    A 64-byte packed row that straddles two cache lines costs two misses instead of one.
+    """
+    n_bytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    raw = np.zeros(n_bytes + alignment, dtype=np.uint8)
+    offset = (-raw.ctypes.data) % alignment
+    return raw[offset : offset + n_bytes].view(dtype).reshape(shape)
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class PackedBvh2:
     """Aila–Laine style packed BVH2 (see the module docstring)."""
@@ -354,7 +368,7 @@ def pack_bvh2(bvh: Bvh2, triangles: FloatArray) -> PackedBvh2:
     n = bvh.n_nodes
     n_leaves = bvh.n_leaves
     n_inner = n - n_leaves
-    rows = np.zeros((max(n_inner, 1), 16), dtype=REAL)
+    rows = aligned_zeros((max(n_inner, 1), 16), REAL, CACHE_LINE)
     ref_of_node = np.empty(n, dtype=INDEX)
     leaf_first = np.empty(n_leaves, dtype=INDEX)
     leaf_count = np.empty(n_leaves, dtype=INDEX)

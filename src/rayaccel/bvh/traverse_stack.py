@@ -30,7 +30,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import cpu_kernel, prefetch_row
 from rayaccel._variant import register
 from rayaccel.bvh.layout import (
     LEAF_BYTES,
@@ -145,7 +145,14 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                             n_steps += 1
                             n_nodes += 1
                         if node >= 0:
-                            # Inner row: test both children's boxes from one 64-byte row.
+                            # Inner row: start fetching the children's rows, then test both
+                            # children's boxes from this 64-byte row.
+                            c0 = refs[node, 12]
+                            c1 = refs[node, 13]
+                            if c0 >= 0:
+                                prefetch_row(box, c0)
+                            if c1 >= 0:
+                                prefetch_row(box, c1)
                             t0 = ray_box_entry(ox, oy, oz, ix, iy, iz,
                                                box[node, nx], box[node, ny], box[node, nz],
                                                box[node, fx], box[node, fy], box[node, fz],
@@ -155,8 +162,6 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                                box[node, 6 + nz], box[node, 6 + fx],
                                                box[node, 6 + fy], box[node, 6 + fz],
                                                t_lo, t_hit)
-                            c0 = refs[node, 12]
-                            c1 = refs[node, 13]
                             if with_stats:
                                 n_box += 2
                                 n_bytes += PACKED_ROW_BYTES

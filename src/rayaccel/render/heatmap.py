@@ -217,7 +217,7 @@ class HeatScale:
             ]
         # Keep labels of inner ticks from running into the end labels
         position = self.normalize(inner) if inner else np.zeros(0)
-        inner = [t for t, p in zip(inner, position) if 0.07 < p < 0.93]
+        inner = [t for t, p in zip(inner, position, strict=True) if 0.07 < p < 0.93]
         return [self.vmin, *inner, self.vmax]
 
     @property
@@ -357,7 +357,8 @@ def legend_image(scale: HeatScale, *, width: int = 640, height: int = 140) -> U8
     # Sample the bar uniformly in normalised position, then map back to values
     s = np.linspace(0.0, 1.0, 512)
     if scale.log:
-        bar_values = np.exp(math.log(scale.vmin) + s * (math.log(scale.vmax) - math.log(scale.vmin)))
+        lo, hi = math.log(scale.vmin), math.log(scale.vmax)
+        bar_values = np.exp(lo + s * (hi - lo))
     else:
         bar_values = scale.vmin + s * (scale.vmax - scale.vmin)
     bar = colorize(bar_values, scale)[None, :, :]

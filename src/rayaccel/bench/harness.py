@@ -1,0 +1,768 @@
+"""The benchmark harness behind ``rayaccel bench`` (STYLE §11, tinybvh's speed-test protocol).
+
+For every scene, thread count and system (each registered builder × each traversal
+of its structure, plus the available peers of :mod:`rayaccel.bench.peers`):
+
+1. **Compile first.** Before any scene, every builder and every traversal variant
+   (closest/any × plain/stats) runs once on a small procedural mesh large enough
+   to reach the parallel code paths. The first call's time is recorded as a
+   ``compile`` record, labelled ``jit`` when numba wrote new cache files during it
+   and ``cache`` when it only loaded them, so compilation never pollutes a timing.
+2. **Validate** each system on each ray set against an oracle before timing it: a
+   deterministic sample of ``validate`` rays (default 200) is traced by
+   :func:`rayaccel.kernels.brute_force.brute_force_trace` (O(rays × triangles);
+   for scenes where that exceeds :data:`BRUTE_FORCE_BUDGET` triangle tests the
+   sample shrinks, or Embree answers if available). rayaccel systems must match
+   exactly (same hit or miss, ``t`` within 1e-5 relative; a different triangle
+   only at equal ``t``); peers, whose triangle tests differ, may disagree on up to
+   2% of the sample (edge-grazing rays). A failing system is reported in an
+   ``invalid`` record and not timed.
+3. **Warm up** with one untimed pass, then time ``repeats`` passes and keep the
+   **median** and the **minimum** (reported as Mrays/s median and best).
+4. For rayaccel systems, trace again with ``stats=True`` (warm-up plus
+   ``repeats`` passes) for the mean nodes and primitives per ray and the stats
+   overhead ``median(stats) / median(plain) - 1``.
+
+Builds are timed the same way: one untimed build (which compiles the parallel
+builder paths on first use), then the median of ``build_repeats`` builds.
+
+The ray sets (:mod:`rayaccel.bench.raysets`) are generated once per scene and the
+same objects go to every system. Each measurement becomes one JSON record
+(:func:`environment` fields included) handed to ``on_record`` as soon as it is
+finished, so a JSONL sink (:class:`rayaccel.bench.report.JsonlWriter`) keeps every
+finished result if the run is interrupted.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import platform
+import subprocess
+import time
+import uuid
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numba
+import numpy as np
+
+from rayaccel import api, registry
+from rayaccel.bench import peers as peers_mod
+from rayaccel.bench.raysets import RAY_KINDS, RaySet, parse_kinds, standard_raysets
+from rayaccel.counters import COUNTER_NAMES
+from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.brute_force import QUERY_ANY, QUERY_CLOSEST, brute_force_trace
+from rayaccel.rays.batch import RayBatch
+from rayaccel.scene import catalog, procedural
+from rayaccel.scene.io import scene_stem
+from rayaccel.scene.mesh import TriangleMesh
+
+#: Most ray/triangle tests the brute-force validation may spend per ray set.
+BRUTE_FORCE_BUDGET = 400_000_000
+#: Relative ``t`` tolerance of rayaccel systems and of peers against the oracle.
+RTOL_OURS = 1e-5
+RTOL_PEER = 1e-3
+#: Share of the validation sample a peer may get wrong (different triangle tests).
+PEER_MISMATCH_FRACTION = 0.02
+#: Rays of the compile warm-up (above every traversal's parallel threshold).
+WARMUP_RAYS = 2048
+
+Record = dict[str, Any]
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What to measure.
+
+    Attributes
+    ----------
+    scenes : sequence of str
+        Catalog names or scene file paths.
+    builders : sequence of str
+        Builder keys; empty means every registered builder.
+    traversals : sequence of str
+        Traversal keys; empty means every traversal of each builder's structure.
+    builder_options : mapping
+        Options passed to every builder (unknown names raise).
+    ray_kinds : sequence of str
+        Subset of ``primary``, ``diffuse``, ``shadow``.
+    threads : sequence of int
+        Thread counts to run with; empty means numba's default (all cores).
+    peers : sequence of str
+        Peer names (:data:`rayaccel.bench.peers.PEERS`); unavailable ones are noted
+        and skipped.
+    repeats : int
+        Timed passes per measurement (after one untimed warm-up).
+    build_repeats : int
+        Timed builds per system (after one untimed build).
+    width, height : int
+        Primary-ray resolution.
+    validate : int
+        Rays checked against the oracle per system and ray set; 0 disables.
+    seed : int
+        Seed of the ray sets and of the validation sample.
+    warmup_triangles : int
+        Size of the compile warm-up mesh.
+    """
+
+    scenes: Sequence[str]
+    builders: Sequence[str] = ()
+    traversals: Sequence[str] = ()
+    builder_options: Mapping[str, Any] = field(default_factory=dict)
+    ray_kinds: Sequence[str] = tuple(RAY_KINDS)
+    threads: Sequence[int] = ()
+    peers: Sequence[str] = ()
+    repeats: int = 5
+    build_repeats: int = 3
+    width: int = 512
+    height: int = 512
+    validate: int = 200
+    seed: int = 0
+    warmup_triangles: int = 40_000
+
+    def __post_init__(self) -> None:
+        if not self.scenes:
+            raise InvalidInputError("scenes: expected at least one scene")
+        for name in ("repeats", "build_repeats", "width", "height", "warmup_triangles"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise InvalidInputError(f"{name}: expected an int >= 1, got {value!r}")
+        if not isinstance(self.validate, int) or self.validate < 0:
+            raise InvalidInputError(f"validate: expected an int >= 0, got {self.validate!r}")
+        parse_kinds(list(self.ray_kinds))
+        for key in self.builders:
+            registry.get(key, "builder")
+        for key in self.traversals:
+            registry.get(key, "traversal")
+        for name in self.peers:
+            peers_mod.get_peer(name)
+        max_threads = int(numba.config.NUMBA_NUM_THREADS)
+        for n in self.threads:
+            if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= max_threads:
+                raise InvalidInputError(
+                    f"threads: expected 1..{max_threads} (NUMBA_NUM_THREADS), got {n!r}"
+                )
+
+    def builder_keys(self) -> list[str]:
+        """Return the builders to measure (every registered one if none was named)."""
+        return list(self.builders) or registry.keys("builder")
+
+    def traversal_keys(self, builder: str) -> list[str]:
+        """Return the traversals to measure with ``builder``'s structure."""
+        structure = registry.get(builder, "builder").structure
+        available = registry.keys("traversal", structure)
+        if not self.traversals:
+            return available
+        return [key for key in self.traversals if key in available]
+
+    def thread_counts(self) -> list[int]:
+        """Return the thread counts (numba's default if none was named)."""
+        return list(self.threads) or [int(numba.config.NUMBA_NUM_THREADS)]
+
+
+@dataclass
+class BenchResult:
+    """Everything a run produced.
+
+    Attributes
+    ----------
+    records : list of dict
+        Every record, in the order they were made.
+    notes : list of str
+        Things a reader of the table must know (skipped peers, thread control).
+    """
+
+    records: list[Record] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+# -- environment -------------------------------------------------------------------------------
+
+
+def cpu_model() -> str:
+    """Return the CPU model from ``/proc/cpuinfo`` (or :func:`platform.processor`)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as handle:
+            for line in handle:
+                if line.lower().startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def git_sha() -> str | None:
+    """Return the git commit of the rayaccel checkout (``+dirty`` if modified), or None."""
+    root = Path(__file__).resolve().parents[3]
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=5,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+            capture_output=True, text=True, timeout=5, check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return f"{sha}+dirty" if dirty else sha or None
+
+
+def threading_layer() -> str:
+    """Return numba's active threading layer, or ``"unset"`` before any parallel kernel."""
+    try:
+        return str(numba.threading_layer())
+    except ValueError:
+        return "unset"
+
+
+def environment() -> Record:
+    """Return the fields every record carries: versions, machine, git sha."""
+    import rayaccel
+
+    return {
+        "rayaccel_version": rayaccel.__version__,
+        "numba_version": numba.__version__,
+        "numpy_version": np.__version__,
+        "python_version": platform.python_version(),
+        "platform": platform.platform(),
+        "cpu_model": cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "numba_max_threads": int(numba.config.NUMBA_NUM_THREADS),
+        "git_sha": git_sha(),
+    }
+
+
+def numba_cache_dirs() -> list[Path]:
+    """Return the folders numba caches rayaccel's kernels in.
+
+    ``NUMBA_CACHE_DIR`` when set; otherwise every ``__pycache__`` folder inside the
+    rayaccel package (numba writes its cache beside the source when it can).
+    """
+    if numba.config.CACHE_DIR:
+        return [Path(numba.config.CACHE_DIR)]
+    package = Path(__file__).resolve().parents[1]
+    return sorted(p for p in package.rglob("__pycache__") if p.is_dir())
+
+
+def numba_cache_files() -> list[Path]:
+    """Return every numba cache file (``*.nbi`` index, ``*.nbc`` code) of rayaccel."""
+    files: list[Path] = []
+    for folder in numba_cache_dirs():
+        files.extend(p for p in folder.rglob("*") if p.suffix in (".nbi", ".nbc"))
+    return sorted(files)
+
+
+def _cache_snapshot() -> dict[Path, int]:
+    snapshot = {}
+    for path in numba_cache_files():
+        try:
+            snapshot[path] = path.stat().st_mtime_ns
+        except OSError:
+            continue
+    return snapshot
+
+
+# -- helpers -----------------------------------------------------------------------------------
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def _timed(fn: Callable[[], Any], repeats: int) -> tuple[np.ndarray, Any]:
+    """Run ``fn`` once untimed, then ``repeats`` timed; return seconds and the last result."""
+    result = fn()
+    seconds = np.empty(repeats)
+    for i in range(repeats):
+        start = time.perf_counter()
+        result = fn()
+        seconds[i] = time.perf_counter() - start
+    return seconds, result
+
+
+def sample_index(n: int, k: int, seed: int) -> np.ndarray:
+    """Return ``min(k, n)`` sorted distinct ray indices drawn with ``seed``."""
+    if k >= n:
+        return np.arange(n)
+    rng = np.random.Generator(np.random.PCG64(seed))
+    return np.sort(rng.choice(n, size=k, replace=False))
+
+
+def scene_label(spec: str) -> str:
+    """Return the name a scene is reported under (a file path gives its stem)."""
+    return scene_stem(spec) if os.sep in spec or Path(spec).suffix else spec
+
+
+@dataclass
+class _Reference:
+    """Oracle answers on a sample of one ray set."""
+
+    index: np.ndarray
+    rays: RayBatch
+    t: np.ndarray
+    prim: np.ndarray
+    source: str
+
+
+def reference_hits(
+    mesh: TriangleMesh, rayset: RaySet, k: int, seed: int, notes: list[str] | None = None
+) -> _Reference | None:
+    """Answer ``k`` sampled rays of ``rayset`` with the brute-force oracle (or Embree).
+
+    Returns None when ``k`` is 0 or no oracle fits the budget.
+    """
+    if k <= 0 or rayset.n_rays == 0:
+        return None
+    n_tris = mesh.n_triangles
+    k = min(k, rayset.n_rays)
+    source = "brute_force"
+    if k * n_tris > BRUTE_FORCE_BUDGET:
+        embree = peers_mod.EmbreePeer()
+        if embree.available():
+            source = "embree"
+        else:
+            k = max(16, BRUTE_FORCE_BUDGET // n_tris)
+            if notes is not None:
+                notes.append(f"{mesh.name}: validation sample cut to {k} rays (brute force budget)")
+    index = sample_index(rayset.n_rays, k, seed)
+    rays = rayset.rays.subset(index)
+    query = QUERY_ANY if rayset.query == "any" else QUERY_CLOSEST
+    if source == "embree":
+        embree.build(mesh)
+        if query == QUERY_ANY:
+            occluded = embree.occluded(rays)
+            return _Reference(index, rays, np.zeros(k), np.where(occluded, 0, -1), source)
+        t, prim = embree.intersect(rays)
+        return _Reference(index, rays, t, prim, source)
+    tri = np.ascontiguousarray(mesh.triangles().reshape(-1, 9))
+    t, prim, _, _ = brute_force_trace(tri, rays.origin, rays.direction, rays.tmin, rays.tmax, query)
+    return _Reference(index, rays, t, prim, source)
+
+
+def count_mismatches(
+    ref: _Reference, query: str, t: np.ndarray | None, prim: np.ndarray, rtol: float
+) -> int:
+    """Count sampled rays whose answer disagrees with the oracle.
+
+    Closest hit: hit/miss differs, or ``|t - t_ref| > rtol·max(1, |t_ref|)`` (a
+    different triangle at an equal ``t`` is a tie, not an error). Any hit: the
+    occluded flag differs.
+    """
+    hit = np.asarray(prim) >= 0
+    ref_hit = ref.prim >= 0
+    bad = hit != ref_hit
+    if query == "closest" and t is not None:
+        both = hit & ref_hit
+        tol = rtol * np.maximum(1.0, np.abs(ref.t.astype(np.float64)))
+        with np.errstate(invalid="ignore"):
+            far = np.abs(np.asarray(t, dtype=np.float64) - ref.t) > tol
+        bad |= both & far
+    return int(bad.sum())
+
+
+class _Progress:
+    """A rich progress bar on stderr, or nothing."""
+
+    def __init__(self, enabled: bool, total: int) -> None:
+        self._progress: Any = None
+        if enabled:
+            from rich.console import Console
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+            )
+
+            self._progress = Progress(
+                TextColumn("[bold]bench[/]"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeElapsedColumn(),
+                TextColumn("{task.description}"),
+                console=Console(stderr=True),
+                transient=True,
+            )
+            self._task = self._progress.add_task("starting", total=total)
+
+    def __enter__(self) -> _Progress:
+        if self._progress is not None:
+            self._progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+
+    def describe(self, text: str) -> None:
+        if self._progress is not None:
+            self._progress.update(self._task, description=text)
+
+    def advance(self) -> None:
+        if self._progress is not None:
+            self._progress.advance(self._task)
+
+    def log(self, text: str) -> None:
+        if self._progress is not None:
+            self._progress.console.print(text, highlight=False, markup=False)
+
+
+# -- the run -----------------------------------------------------------------------------------
+
+
+class _Run:
+    """State of one benchmark run (records, notes, sink)."""
+
+    def __init__(
+        self, config: BenchConfig, on_record: Callable[[Record], None] | None, progress: bool
+    ) -> None:
+        self.config = config
+        self.on_record = on_record
+        self.result = BenchResult()
+        self.env = environment()
+        self.run_id = uuid.uuid4().hex[:12]
+        self.show_progress = progress
+        self.ui = _Progress(False, 0)
+
+    def emit(self, record: Record) -> Record:
+        full: Record = {
+            "record": record.pop("record"),
+            "run_id": self.run_id,
+            "timestamp": _now(),
+            **record,
+            "threading_layer": threading_layer(),
+            **self.env,
+        }
+        self.result.records.append(full)
+        if self.on_record is not None:
+            self.on_record(full)
+        return full
+
+    def note(self, text: str) -> None:
+        if text not in self.result.notes:
+            self.result.notes.append(text)
+            self.ui.log(f"note: {text}")
+
+    # -- compile phase ---------------------------------------------------------------------
+
+    def compile_all(self) -> None:
+        """Run every builder and traversal variant once on a small mesh; record the first call."""
+        mesh = procedural.triangle_soup(self.config.warmup_triangles, seed=1)
+        rng = np.random.Generator(np.random.PCG64(2))
+        origin = rng.uniform(-0.5, 1.5, (WARMUP_RAYS, 3))
+        target = rng.uniform(0.0, 1.0, (WARMUP_RAYS, 3))
+        rays = RayBatch(origin, target - origin, 0.0, np.inf)
+        for builder in self.config.builder_keys():
+            accel, first_ms, status = self._first_call(
+                lambda b=builder: api.build(mesh, b, **self.config.builder_options)
+            )
+            self.emit_compile(builder, None, "build", first_ms, status, mesh)
+            for traversal in self.config.traversal_keys(builder):
+                for query in ("closest", "any"):
+                    for stats in (False, True):
+                        _, first_ms, status = self._first_call(
+                            lambda a=accel, t=traversal, q=query, s=stats: a.trace(
+                                rays, query=q, traversal=t, stats=s
+                            )
+                        )
+                        variant = f"{query}{'+stats' if stats else ''}"
+                        self.emit_compile(builder, traversal, variant, first_ms, status, mesh)
+
+    def _first_call(self, fn: Callable[[], Any]) -> tuple[Any, float, str]:
+        before = _cache_snapshot()
+        start = time.perf_counter()
+        value = fn()
+        first = time.perf_counter() - start
+        after = _cache_snapshot()
+        compiled = any(before.get(path) != mtime for path, mtime in after.items())
+        # The steady-state cost of the same call, to isolate compile/cache-load time
+        start = time.perf_counter()
+        fn()
+        steady = time.perf_counter() - start
+        return value, max(first - steady, 0.0) * 1e3, "jit" if compiled else "cache"
+
+    def emit_compile(
+        self, builder: str, traversal: str | None, variant: str, ms: float, status: str,
+        mesh: TriangleMesh,
+    ) -> None:
+        self.emit({
+            "record": "compile",
+            "system": builder if traversal is None else f"{builder}+{traversal}",
+            "builder": builder,
+            "traversal": traversal,
+            "variant": variant,
+            "compile_ms": round(ms, 3),
+            "compile_kind": status,
+            "warmup_triangles": mesh.n_triangles,
+        })  # fmt: skip
+
+    # -- per scene -------------------------------------------------------------------------
+
+    def run(self) -> BenchResult:
+        config = self.config
+        peer_objects = [peers_mod.get_peer(name) for name in config.peers]
+        usable: list[peers_mod.Peer] = []
+        for peer in peer_objects:
+            reason = peer.unavailable_reason()
+            if reason is None:
+                usable.append(peer)
+            else:
+                self.note(f"{peer.name} not measured: {reason}")
+        builders = config.builder_keys()
+        n_systems = len(usable) + sum(len(config.traversal_keys(b)) for b in builders)
+        total = len(config.scenes) * len(config.thread_counts()) * n_systems * len(
+            config.ray_kinds
+        )
+        self.ui = _Progress(self.show_progress, total)
+        initial_threads = numba.get_num_threads()
+        try:
+            with self.ui:
+                self.ui.describe("compiling kernels")
+                self.compile_all()
+                for spec in config.scenes:
+                    self.scene(spec, usable)
+        finally:
+            numba.set_num_threads(initial_threads)
+        return self.result
+
+    def scene(self, spec: str, peers: list[peers_mod.Peer]) -> None:
+        config = self.config
+        label = scene_label(spec)
+        self.ui.describe(f"{label}: loading")
+        mesh = catalog.get(spec)
+        self.ui.describe(f"{label}: generating rays")
+        kinds = parse_kinds(list(config.ray_kinds))
+        raysets = standard_raysets(
+            mesh, spec, kinds=kinds, width=config.width, height=config.height, seed=config.seed
+        )
+        self.ui.describe(f"{label}: oracle")
+        references = {
+            kind: reference_hits(mesh, rs, config.validate, config.seed, self.result.notes)
+            for kind, rs in raysets.items()
+        }
+        base = {"scene": label, "n_tris": mesh.n_triangles}
+        for threads in config.thread_counts():
+            numba.set_num_threads(threads)
+            reference_rates: dict[str, float] = {}
+            for peer in peers:
+                self.peer(peer, mesh, raysets, references, {**base, "threads": threads},
+                          reference_rates)  # fmt: skip
+            for builder in config.builder_keys():
+                self.ours(builder, mesh, raysets, references, {**base, "threads": threads},
+                          reference_rates)  # fmt: skip
+
+    def _validation(self, ref: _Reference | None, mismatches: int | None) -> Record | None:
+        if ref is None or mismatches is None:
+            return None
+        return {"reference": ref.source, "checked": len(ref.index), "mismatches": mismatches}
+
+    def _ratio(self, rates: Mapping[str, float], kind: str, mrays: float) -> float | None:
+        reference = rates.get(kind)
+        return round(mrays / reference, 4) if reference else None
+
+    def peer(
+        self,
+        peer: peers_mod.Peer,
+        mesh: TriangleMesh,
+        raysets: Mapping[str, RaySet],
+        references: Mapping[str, _Reference | None],
+        base: Record,
+        rates: dict[str, float],
+    ) -> None:
+        config = self.config
+        peer.set_threads(base["threads"])
+        note = peer.threads_note.format(n=base["threads"])
+        if note:
+            self.note(note)
+        skip = peer.skip_reason(mesh)
+        if skip is not None:
+            self.note(f"{base['scene']}: {skip}")
+            for _ in raysets:
+                self.ui.advance()
+            return
+        self.ui.describe(f"{base['scene']}: {peer.name} build")
+        peer.build(mesh)  # untimed: first build may load libraries
+        build_ms = float(np.median([peer.build(mesh) for _ in range(config.build_repeats)]))
+        system = {"system": peer.name, "kind": "peer", "peer": peer.name, "builder": None,
+                  "traversal": None, "peer_label": peer.label}  # fmt: skip
+        for kind, rayset in raysets.items():
+            self.ui.describe(f"{base['scene']}: {peer.name} {kind}")
+            rays = peer.limit(rayset.rays)
+            prepared = peer.prepare(rays)
+            if rayset.query == "any":
+                def query(p: Any = prepared) -> Any:
+                    return peer.occluded(p)
+            else:
+                def query(p: Any = prepared) -> Any:
+                    return peer.intersect(p)
+            ref = references.get(kind)
+            mismatches = None
+            if ref is not None:
+                sub = peer.prepare(ref.rays)
+                if rayset.query == "any":
+                    mismatches = count_mismatches(
+                        ref, "any", None, np.where(peer.occluded(sub), 0, -1), RTOL_PEER
+                    )
+                else:
+                    t, prim = peer.intersect(sub)
+                    mismatches = count_mismatches(ref, "closest", t, prim, RTOL_PEER)
+            record = {**base, **system, "ray_type": kind, "query": rayset.query,
+                      "n_rays": rays.n_rays, "build_ms": round(build_ms, 3),
+                      "validation": self._validation(ref, mismatches)}  # fmt: skip
+            if rays.n_rays < rayset.n_rays:
+                record["note"] = f"first {rays.n_rays} of {rayset.n_rays} rays"
+            allowed = PEER_MISMATCH_FRACTION * (len(ref.index) if ref is not None else 0)
+            if mismatches is not None and mismatches > allowed:
+                self.emit({"record": "invalid", **record})
+                self.note(f"{base['scene']}: {peer.name} {kind}: {mismatches} rays differ "
+                          f"from the {ref.source} oracle; not timed")  # fmt: skip
+                self.ui.advance()
+                continue
+            seconds, _ = _timed(query, config.repeats)
+            timing = _timing_fields(rays.n_rays, seconds)
+            if peer.name == peers_mod.REFERENCE_PEER:
+                rates[kind] = timing["mrays_median"]
+            record.update(timing)
+            record["ratio_vs_open3d"] = self._ratio(rates, kind, timing["mrays_median"])
+            self.emit({"record": "trace", **record})
+            self.ui.advance()
+
+    def ours(
+        self,
+        builder: str,
+        mesh: TriangleMesh,
+        raysets: Mapping[str, RaySet],
+        references: Mapping[str, _Reference | None],
+        base: Record,
+        rates: Mapping[str, float],
+    ) -> None:
+        config = self.config
+        self.ui.describe(f"{base['scene']}: {builder} build")
+        options = dict(config.builder_options)
+        api.build(mesh, builder, **options)  # untimed: compiles parallel builder paths
+        build_times = []
+        accel = None
+        for _ in range(config.build_repeats):
+            accel = api.build(mesh, builder, **options)
+            build_times.append(accel.build_ms)
+        assert accel is not None
+        info = accel.info()
+        structure = {key: info.get(key) for key in ("n_nodes", "n_leaves", "depth", "sah", "bytes")}
+        build_ms = round(float(np.median(build_times)), 3)
+        for traversal in config.traversal_keys(builder):
+            system = {"system": f"{builder}+{traversal}", "kind": "rayaccel", "builder": builder,
+                      "traversal": traversal, "peer": None, "build_ms": build_ms,
+                      **structure}  # fmt: skip
+            for kind, rayset in raysets.items():
+                self.ui.describe(f"{base['scene']}: {builder}+{traversal} {kind}")
+                self.measure_ours(accel, traversal, kind, rayset, references.get(kind),
+                                  {**base, **system}, rates)  # fmt: skip
+                self.ui.advance()
+
+    def measure_ours(
+        self,
+        accel: api.Accel,
+        traversal: str,
+        kind: str,
+        rayset: RaySet,
+        ref: _Reference | None,
+        base: Record,
+        rates: Mapping[str, float],
+    ) -> None:
+        config = self.config
+        rays, query = rayset.rays, rayset.query
+        record = {**base, "ray_type": kind, "query": query, "n_rays": rays.n_rays}
+        mismatches = None
+        if ref is not None:
+            hits = accel.trace(ref.rays, query=query, traversal=traversal)
+            mismatches = count_mismatches(ref, query, hits.t, hits.prim, RTOL_OURS)
+        record["validation"] = self._validation(ref, mismatches)
+        if mismatches:
+            self.emit({"record": "invalid", **record})
+            self.note(f"{base['scene']}: {base['system']} {kind}: {mismatches} of "
+                      f"{len(ref.index)} rays differ from the {ref.source} oracle; not timed")  # type: ignore[union-attr]  # fmt: skip
+            return
+        seconds, _ = _timed(lambda: accel.trace(rays, query=query, traversal=traversal),
+                            config.repeats)  # fmt: skip
+        stats_seconds, hits = _timed(
+            lambda: accel.trace(rays, query=query, traversal=traversal, stats=True),
+            config.repeats,
+        )
+        timing = _timing_fields(rays.n_rays, seconds)
+        record.update(timing)
+        record["ratio_vs_open3d"] = self._ratio(rates, kind, timing["mrays_median"])
+        record["stats_ms_median"] = round(float(np.median(stats_seconds)) * 1e3, 4)
+        record["stats_overhead"] = round(
+            float(np.median(stats_seconds)) / float(np.median(seconds)) - 1.0, 4
+        )
+        record.update(counter_summary(hits.stats))
+        self.emit({"record": "trace", **record})
+
+
+def _timing_fields(n_rays: int, seconds: np.ndarray) -> Record:
+    median = float(np.median(seconds))
+    best = float(np.min(seconds))
+    return {
+        "repeats": len(seconds),
+        "ms_median": round(median * 1e3, 4),
+        "ms_best": round(best * 1e3, 4),
+        "mrays_median": round(n_rays / median / 1e6, 4) if median > 0 else None,
+        "mrays_best": round(n_rays / best / 1e6, 4) if best > 0 else None,
+    }
+
+
+def counter_summary(stats: Mapping[str, np.ndarray] | None) -> Record:
+    """Return mean nodes and primitives per ray, nodes p95, and every counter's mean."""
+    if not stats:
+        return {}
+    means = {name: round(float(np.mean(stats[name])), 4) for name in COUNTER_NAMES if name in stats}
+    nodes = np.asarray(stats.get("nodes", np.zeros(0)))
+    return {
+        "nodes_per_ray": means.get("nodes"),
+        "prims_per_ray": means.get("prim_tests"),
+        "nodes_p95": float(np.percentile(nodes, 95)) if nodes.size else None,
+        "counters_mean": means,
+    }
+
+
+def run_bench(
+    config: BenchConfig,
+    *,
+    on_record: Callable[[Record], None] | None = None,
+    progress: bool = False,
+) -> BenchResult:
+    """Run the benchmark described by ``config``.
+
+    Parameters
+    ----------
+    config : BenchConfig
+    on_record : callable, optional
+        Called with every record as soon as it is finished (e.g.
+        :meth:`rayaccel.bench.report.JsonlWriter.append`).
+    progress : bool
+        Show a rich progress bar on stderr.
+
+    Returns
+    -------
+    BenchResult
+        The records and the notes. An interrupt (``KeyboardInterrupt``) propagates;
+        everything already passed to ``on_record`` is complete.
+
+    Raises
+    ------
+    InvalidInputError, UnknownVariantError, SceneFileError
+        Bad configuration or scene.
+    """
+    return _Run(config, on_record, progress).run()
+
+
+def iter_trace_records(records: Sequence[Record]) -> Iterator[Record]:
+    """Yield the ``trace`` and ``invalid`` records (the ones tables show)."""
+    for record in records:
+        if record.get("record") in ("trace", "invalid"):
+            yield record
