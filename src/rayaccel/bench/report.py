@@ -212,6 +212,22 @@ def markdown_table(records: Iterable[Record]) -> str:
     return "\n".join(lines)
 
 
+def text_table(records: Iterable[Record]) -> str:
+    """Return the benchmark table as aligned plain text (readable at any terminal width)."""
+    rows = [list(COLUMNS), *table_rows(records)]
+    widths = [max(len(row[i]) for row in rows) for i in range(len(COLUMNS))]
+
+    def line(row: Sequence[str]) -> str:
+        cells = [
+            cell.rjust(width) if column in NUMERIC else cell.ljust(width)
+            for cell, width, column in zip(row, widths, COLUMNS, strict=True)
+        ]
+        return "  ".join(cells).rstrip()
+
+    rule = "  ".join("-" * width for width in widths)
+    return "\n".join([line(rows[0]), rule, *(line(row) for row in rows[1:])])
+
+
 def rich_table(records: Iterable[Record], title: str | None = None) -> Any:
     """Return the benchmark table as a :class:`rich.table.Table`."""
     from rich.table import Table

@@ -30,17 +30,14 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import (
-    compact_to_canonical,
-    depth_forces_median,
-    primitive_bounds,
-    range_bounds,
-)
+from rayaccel.bvh._build_common import compact_to_canonical, depth_forces_median
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
 MAX_BINS = 256
+#: Fewest bins used for a small node (a node of n < n_bins primitives uses max(n, MIN_BINS)).
+MIN_BINS = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,21 +76,23 @@ class BinnedSahOptions:
             raise InvalidInputError("parallel_threshold: expected >= 2")
 
 
-def _bin_prims_py(index, begin, end, centroid, prim_lo, prim_hi, cb_lo, scale, n_bins,
-                  counts, bin_box):
-    """Accumulate ``index[begin:end]`` into per-axis bins (counts and boxes)."""
+def _bin_prims_py(refs, begin, end, cb_lo, scale, n_bins, counts, bin_box):
+    """Accumulate references ``refs[begin:end]`` into per-axis bins (counts and boxes).
+
+    A reference row is ``[lo.x, lo.y, lo.z, id, hi.x, hi.y, hi.z, -]``; its binning key is
+    the doubled centroid ``lo + hi`` (no multiply, same order as the centroid).
+    """
     for i in range(begin, end):
-        p = index[i]
         for a in range(3):
-            b = int((centroid[p, a] - cb_lo[a]) * scale[a])
+            b = int((refs[i, a] + refs[i, 4 + a] - cb_lo[a]) * scale[a])
             if b > n_bins - 1:
                 b = n_bins - 1
             if b < 0:
                 b = 0
             counts[a, b] += 1
             for k in range(3):
-                bin_box[a, b, k] = min(bin_box[a, b, k], prim_lo[p, k])
-                bin_box[a, b, 3 + k] = max(bin_box[a, b, 3 + k], prim_hi[p, k])
+                bin_box[a, b, k] = min(bin_box[a, b, k], refs[i, k])
+                bin_box[a, b, 3 + k] = max(bin_box[a, b, 3 + k], refs[i, 4 + k])
 
 
 bin_prims = cpu_inline(_bin_prims_py)
@@ -208,11 +207,12 @@ def _best_split(counts, bin_box, n_bins, scale, count, node_area, trav_cost, ise
 
 
 @cpu_inline
-def _partition(index, begin, end, centroid, axis, split_bin, cb_lo_axis, scale_axis, n_bins,
+def _partition(refs, begin, end, axis, split_bin, cb_lo_axis, scale_axis, n_bins,
                left_cb, right_cb):
-    """Partition ``index[begin:end]`` so bins ``<= split_bin`` come first; return the middle.
+    """Partition ``refs[begin:end]`` so bins ``<= split_bin`` come first; return the middle.
 
-    Also writes the centroid bounds of both sides into ``left_cb``/``right_cb`` (lo 0:3, hi 3:6).
+    Rows are swapped whole (32 bytes), so later passes read memory sequentially. Also
+    writes both sides' doubled-centroid bounds into ``left_cb``/``right_cb`` (lo 0:3, hi 3:6).
     """
     for k in range(3):
         left_cb[k] = np.inf
@@ -222,25 +222,63 @@ def _partition(index, begin, end, centroid, axis, split_bin, cb_lo_axis, scale_a
     i = begin
     j = end - 1
     while i <= j:
-        p = index[i]
-        b = int((centroid[p, axis] - cb_lo_axis) * scale_axis)
+        b = int((refs[i, axis] + refs[i, 4 + axis] - cb_lo_axis) * scale_axis)
         if b > n_bins - 1:
             b = n_bins - 1
         if b < 0:
             b = 0
         if b <= split_bin:
             for k in range(3):
-                left_cb[k] = min(left_cb[k], centroid[p, k])
-                left_cb[3 + k] = max(left_cb[3 + k], centroid[p, k])
+                c = refs[i, k] + refs[i, 4 + k]
+                left_cb[k] = min(left_cb[k], c)
+                left_cb[3 + k] = max(left_cb[3 + k], c)
             i += 1
         else:
             for k in range(3):
-                right_cb[k] = min(right_cb[k], centroid[p, k])
-                right_cb[3 + k] = max(right_cb[3 + k], centroid[p, k])
-            index[i] = index[j]
-            index[j] = p
+                c = refs[i, k] + refs[i, 4 + k]
+                right_cb[k] = min(right_cb[k], c)
+                right_cb[3 + k] = max(right_cb[3 + k], c)
+            for k in range(8):
+                tmp = refs[i, k]
+                refs[i, k] = refs[j, k]
+                refs[j, k] = tmp
             j -= 1
     return i
+
+
+@cpu_inline
+def _ref_range_bounds(refs, begin, end, out):
+    """Write box ``out[0:6]`` and doubled-centroid box ``out[6:12]`` of ``refs[begin:end]``."""
+    for a in range(3):
+        out[a] = np.inf
+        out[3 + a] = -np.inf
+        out[6 + a] = np.inf
+        out[9 + a] = -np.inf
+    for i in range(begin, end):
+        for a in range(3):
+            out[a] = min(out[a], refs[i, a])
+            out[3 + a] = max(out[3 + a], refs[i, 4 + a])
+            c = refs[i, a] + refs[i, 4 + a]
+            out[6 + a] = min(out[6 + a], c)
+            out[9 + a] = max(out[9 + a], c)
+
+
+@cpu_kernel(parallel=True)
+def _make_refs(triangles):
+    """Return the ``(F, 8)`` float32 reference rows (box and id) of ``triangles (F, 3, 3)``."""
+    n = triangles.shape[0]
+    refs = np.empty((n, 8), dtype=np.float32)
+    ids = refs.view(np.int32)
+    for i in prange(n):
+        for a in range(3):
+            x0 = triangles[i, 0, a]
+            x1 = triangles[i, 1, a]
+            x2 = triangles[i, 2, a]
+            refs[i, a] = min(x0, min(x1, x2))
+            refs[i, 4 + a] = max(x0, max(x1, x2))
+        ids[i, 3] = i
+        refs[i, 7] = 0
+    return refs
 
 
 @cpu_inline
@@ -251,9 +289,9 @@ def _set_node_box(t_lo, t_hi, node, box):
 
 
 @cpu_kernel()
-def _build_subtree(index, begin, end, depth0, root, node_base, box0, centroid, prim_lo, prim_hi,
-                   n_bins, max_leaf, trav_cost, isect_cost, t_lo, t_hi, t_first, t_count):
-    """Build the subtree over ``index[begin:end]`` serially.
+def _build_subtree(refs, begin, end, depth0, root, node_base, box0, n_bins, max_leaf, trav_cost,
+                   isect_cost, t_lo, t_hi, t_first, t_count):
+    """Build the subtree over ``refs[begin:end]`` serially.
 
     ``root`` is the pool slot of the subtree root (its box already written) and
     children pairs are allocated from ``node_base``. ``box0[0:12]`` holds the root's
@@ -302,13 +340,14 @@ def _build_subtree(index, begin, end, depth0, root, node_base, box0, centroid, p
         axis = -1
         split_bin = -1
         cost = np.inf
-        if not forced_median and _bin_scales(cb, n_bins, scale):
-            _reset_bins(counts, bin_box, n_bins)
+        # Small nodes use fewer bins: the per-bin sweep would dominate their cost.
+        node_bins = min(n_bins, max(MIN_BINS, count))
+        if not forced_median and _bin_scales(cb, node_bins, scale):
+            _reset_bins(counts, bin_box, node_bins)
             for a in range(3):
                 cb[a] = cb[6 + a]
-            bin_prims(index, lo_i, hi_i, centroid, prim_lo, prim_hi, cb, scale, n_bins,
-                      counts, bin_box)
-            cost, axis, split_bin = _best_split(counts, bin_box, n_bins, scale, count, node_area,
+            bin_prims(refs, lo_i, hi_i, cb, scale, node_bins, counts, bin_box)
+            cost, axis, split_bin = _best_split(counts, bin_box, node_bins, scale, count, node_area,
                                                 trav_cost, isect_cost, suffix, child_box)
         # Leaf when splitting does not pay and the leaf is small enough.
         if count <= max_leaf and (axis < 0 or cost >= isect_cost * count):
@@ -320,8 +359,8 @@ def _build_subtree(index, begin, end, depth0, root, node_base, box0, centroid, p
         t_first[node] = left
         t_count[node] = 0
         if axis >= 0:
-            mid = _partition(index, lo_i, hi_i, centroid, axis, split_bin, cb[6 + axis],
-                             scale[axis], n_bins, left_cb, right_cb)
+            mid = _partition(refs, lo_i, hi_i, axis, split_bin, cb[6 + axis], scale[axis],
+                             node_bins, left_cb, right_cb)
             for k in range(3):
                 t_lo[left, k] = child_box[k]
                 t_hi[left, k] = child_box[3 + k]
@@ -330,11 +369,11 @@ def _build_subtree(index, begin, end, depth0, root, node_base, box0, centroid, p
         else:
             # No usable plane (equal centroids) or depth bound reached: balanced index median.
             mid = lo_i + count // 2
-            range_bounds(index, lo_i, mid, prim_lo, prim_hi, centroid, half)
+            _ref_range_bounds(refs, lo_i, mid, half)
             _set_node_box(t_lo, t_hi, left, half[0:6])
             for k in range(6):
                 left_cb[k] = half[6 + k]
-            range_bounds(index, mid, hi_i, prim_lo, prim_hi, centroid, half)
+            _ref_range_bounds(refs, mid, hi_i, half)
             _set_node_box(t_lo, t_hi, left + 1, half[0:6])
             for k in range(6):
                 right_cb[k] = half[6 + k]
@@ -357,7 +396,7 @@ def _build_subtree(index, begin, end, depth0, root, node_base, box0, centroid, p
 
 
 @cpu_kernel(parallel=True)
-def _bin_parallel(index, begin, end, centroid, prim_lo, prim_hi, cb_lo, scale, n_bins, n_chunks):
+def _bin_parallel(refs, begin, end, cb_lo, scale, n_bins, n_chunks):
     """Bin a large range with ``n_chunks`` private bin sets, then reduce them in order."""
     counts_c = np.zeros((n_chunks, 3, n_bins), dtype=np.int32)
     box_c = np.empty((n_chunks, 3, n_bins, 6), dtype=np.float32)
@@ -370,8 +409,7 @@ def _bin_parallel(index, begin, end, centroid, prim_lo, prim_hi, cb_lo, scale, n
                     box_c[c, a, b, 3 + k] = -np.inf
         lo_i = begin + c * size
         hi_i = min(end, lo_i + size)
-        bin_prims(index, lo_i, hi_i, centroid, prim_lo, prim_hi, cb_lo, scale, n_bins,
-                  counts_c[c], box_c[c])
+        bin_prims(refs, lo_i, hi_i, cb_lo, scale, n_bins, counts_c[c], box_c[c])
     counts = np.zeros((3, n_bins), dtype=np.int32)
     bin_box = np.empty((3, n_bins, 6), dtype=np.float32)
     for a in range(3):
@@ -388,9 +426,8 @@ def _bin_parallel(index, begin, end, centroid, prim_lo, prim_hi, cb_lo, scale, n
 
 
 @cpu_kernel()
-def _split_large(index, begin, end, depth, node, left, cb_in, counts, bin_box, centroid, prim_lo,
-                 prim_hi, n_bins, max_leaf, trav_cost, isect_cost, scale, t_lo, t_hi, t_first,
-                 t_count, out_cb):
+def _split_large(refs, begin, end, depth, node, left, cb_in, counts, bin_box, n_bins, max_leaf,
+                 trav_cost, isect_cost, scale, t_lo, t_hi, t_first, t_count, out_cb):
     """Split one large node with precomputed bins; return the partition point (-1: leaf)."""
     count = end - begin
     suffix = np.empty((n_bins, 7), dtype=np.float32)
@@ -411,8 +448,8 @@ def _split_large(index, begin, end, depth, node, left, cb_in, counts, bin_box, c
     t_first[node] = left
     t_count[node] = 0
     if axis >= 0:
-        mid = _partition(index, begin, end, centroid, axis, split_bin, cb_in[axis], scale[axis],
-                         n_bins, out_cb[0], out_cb[1])
+        mid = _partition(refs, begin, end, axis, split_bin, cb_in[axis], scale[axis], n_bins,
+                         out_cb[0], out_cb[1])
         for k in range(3):
             t_lo[left, k] = child_box[k]
             t_hi[left, k] = child_box[3 + k]
@@ -420,11 +457,11 @@ def _split_large(index, begin, end, depth, node, left, cb_in, counts, bin_box, c
             t_hi[left + 1, k] = child_box[9 + k]
     else:
         mid = begin + count // 2
-        range_bounds(index, begin, mid, prim_lo, prim_hi, centroid, half)
+        _ref_range_bounds(refs, begin, mid, half)
         _set_node_box(t_lo, t_hi, left, half[0:6])
         for k in range(6):
             out_cb[0, k] = half[6 + k]
-        range_bounds(index, mid, end, prim_lo, prim_hi, centroid, half)
+        _ref_range_bounds(refs, mid, end, half)
         _set_node_box(t_lo, t_hi, left + 1, half[0:6])
         for k in range(6):
             out_cb[1, k] = half[6 + k]
@@ -432,9 +469,8 @@ def _split_large(index, begin, end, depth, node, left, cb_in, counts, bin_box, c
 
 
 @cpu_kernel(parallel=True)
-def _build_frontier(index, task_begin, task_end, task_depth, task_node, task_base, task_cb,
-                    centroid, prim_lo, prim_hi, n_bins, max_leaf, trav_cost, isect_cost,
-                    t_lo, t_hi, t_first, t_count, used):
+def _build_frontier(refs, task_begin, task_end, task_depth, task_node, task_base, task_cb,
+                    n_bins, max_leaf, trav_cost, isect_cost, t_lo, t_hi, t_first, t_count, used):
     """Build every frontier subtree concurrently, each into its reserved node block."""
     for i in prange(task_begin.shape[0]):
         box0 = np.empty(12, dtype=np.float32)
@@ -444,9 +480,9 @@ def _build_frontier(index, task_begin, task_end, task_depth, task_node, task_bas
             box0[3 + k] = t_hi[node, k]
         for k in range(6):
             box0[6 + k] = task_cb[i, k]
-        used[i] = _build_subtree(index, task_begin[i], task_end[i], task_depth[i], node,
-                                 task_base[i], box0, centroid, prim_lo, prim_hi, n_bins,
-                                 max_leaf, trav_cost, isect_cost, t_lo, t_hi, t_first, t_count)
+        used[i] = _build_subtree(refs, task_begin[i], task_end[i], task_depth[i], node,
+                                 task_base[i], box0, n_bins, max_leaf, trav_cost, isect_cost,
+                                 t_lo, t_hi, t_first, t_count)
 
 
 @register(
@@ -470,17 +506,15 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
         Canonical tree; depth at most ``MAX_DEPTH``.
     """
     opt = options or BinnedSahOptions()
-    prim_lo, prim_hi, centroid = primitive_bounds(mesh.triangles())
+    refs = _make_refs(mesh.triangles())
     n = mesh.n_triangles
-    index = np.arange(n, dtype=np.int32)
     capacity = 2 * n - 1 if n > 0 else 1
     t_lo = np.empty((capacity, 3), dtype=np.float32)
     t_hi = np.empty((capacity, 3), dtype=np.float32)
     t_first = np.zeros(capacity, dtype=np.int32)
     t_count = np.full(capacity, -1, dtype=np.int32)
     box = np.empty(12, dtype=np.float32)
-    box[0:3], box[3:6] = prim_lo.min(axis=0), prim_hi.max(axis=0)
-    box[6:9], box[9:12] = centroid.min(axis=0), centroid.max(axis=0)
+    _ref_range_bounds(refs, 0, n, box)
     t_lo[0], t_hi[0] = box[0:3], box[3:6]
     n_bins = int(opt.n_bins)
     max_leaf = int(opt.max_leaf_size)
@@ -502,14 +536,14 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
         with np.errstate(divide="ignore"):
             scale[:] = np.where(extent > 0, np.float32(n_bins) * np.float32(0.99999) / extent, 0)
         if (scale > 0).any():
-            counts, bin_box = _bin_parallel(index, begin, end, centroid, prim_lo, prim_hi,
-                                            cb[0:3].copy(), scale, n_bins, n_chunks)
+            counts, bin_box = _bin_parallel(refs, begin, end, cb[0:3].copy(), scale, n_bins,
+                                            n_chunks)
         else:
             counts = np.zeros((3, 0), dtype=np.int32)
             bin_box = np.zeros((3, 0, 6), dtype=np.float32)
-        mid = _split_large(index, begin, end, depth, node, next_node, cb[0:3].copy(), counts,
-                           bin_box, centroid, prim_lo, prim_hi, n_bins, max_leaf, trav, isect,
-                           scale, t_lo, t_hi, t_first, t_count, out_cb)
+        mid = _split_large(refs, begin, end, depth, node, next_node, cb[0:3].copy(), counts,
+                           bin_box, n_bins, max_leaf, trav, isect, scale, t_lo, t_hi, t_first,
+                           t_count, out_cb)
         if mid < 0:
             continue
         left = next_node
@@ -527,8 +561,8 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
         sizes = np.maximum(2 * (task_end - task_begin) - 2, 0)
         task_base = (next_node + np.concatenate(([0], np.cumsum(sizes)[:-1]))).astype(np.int32)
         used = np.empty(len(frontier), dtype=np.int32)
-        _build_frontier(index, task_begin, task_end, task_depth, task_node, task_base, task_cb,
-                        centroid, prim_lo, prim_hi, n_bins, max_leaf, trav, isect,
-                        t_lo, t_hi, t_first, t_count, used)
+        _build_frontier(refs, task_begin, task_end, task_depth, task_node, task_base, task_cb,
+                        n_bins, max_leaf, trav, isect, t_lo, t_hi, t_first, t_count, used)
         next_node = int(task_base[-1] + sizes[-1])
-    return compact_to_canonical(t_lo, t_hi, t_first, t_count, index, n, next_node)
+    prim_index = np.ascontiguousarray(refs.view(np.int32)[:, 3])
+    return compact_to_canonical(t_lo, t_hi, t_first, t_count, prim_index, n, next_node)

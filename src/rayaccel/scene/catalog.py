@@ -203,8 +203,11 @@ def _scene_files(folder: Path) -> Iterable[Path]:
         children = sorted(folder.iterdir())
     except OSError:
         return []
-    lowered = tuple(SUPPORTED_SUFFIXES)
-    return [child for child in children if child.name.lower().endswith(lowered) and child.is_file()]
+    return [
+        child
+        for child in children
+        if child.name.lower().endswith(SUPPORTED_SUFFIXES) and child.is_file()
+    ]
 
 
 def file_scenes(search_path: PathList = None) -> dict[str, Path]:

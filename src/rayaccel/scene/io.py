@@ -69,6 +69,7 @@ _OBJ_FREEFORM = frozenset(
 )  # fmt: skip
 _VERTEX_COLUMNS = (3, 4, 6, 7)  # x y z, + w, + r g b, + w r g b
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
+_INDEX_LIMIT = 2**62  # larger references cannot be valid and would overflow int64
 
 
 def scene_stem(path: str | os.PathLike[str]) -> str:
@@ -403,6 +404,10 @@ def _parse_faces(
                         f"{token!r}"
                     ) from None
                 if k == 0:
+                    if abs(value) >= _INDEX_LIMIT:
+                        raise SceneFileError(
+                            f"{source}:{number(i)}: face index {value} out of range"
+                        )
                     refs.append(value)
         counts[row] = len(tokens)
     return counts, np.asarray(refs, dtype=np.int64)
