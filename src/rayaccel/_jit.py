@@ -1,13 +1,23 @@
-"""One decorator policy for every CPU kernel (STYLE §4.1).
+"""One decorator policy for every CPU kernel (STYLE §4.1), and where compiled kernels are cached.
 
 ``fastmath`` keeps IEEE infinities and NaN (no ``nnan``/``ninf``): slab tests for
 axis-parallel rays rely on ``1/±0 = ±inf``. ``error_model="numpy"`` makes division
 by zero give ``inf`` instead of raising.
+
+Cache location: numba invalidates a cached kernel only when *its own* file changes,
+so a kernel that inlines a helper from another file keeps stale machine code after
+that helper is edited (STYLE §4.3 rule 4). We therefore key the cache folder by a
+digest of every rayaccel source file: ``$NUMBA_CACHE_DIR/rayaccel-<digest>`` (or
+``~/.cache/rayaccel/numba/rayaccel-<digest>`` when ``NUMBA_CACHE_DIR`` is unset).
+Any source change starts a fresh cache; ``rayaccel cache clear`` removes old ones.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numba
@@ -16,6 +26,30 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 FASTMATH = frozenset({"nsz", "arcp", "contract"})
+
+
+def source_digest() -> str:
+    """Return a digest of every ``.py`` file of the installed rayaccel package."""
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha1()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def cache_root() -> Path:
+    """Return the folder that holds every rayaccel kernel cache (one subfolder per digest)."""
+    base = os.environ.get("NUMBA_CACHE_DIR")
+    if base:
+        return Path(base)
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(xdg) / "rayaccel" / "numba"
+
+
+#: The cache folder of this exact source tree (set before any kernel is decorated).
+CACHE_DIR = cache_root() / f"rayaccel-{source_digest()}"
+numba.config.CACHE_DIR = str(CACHE_DIR)
 
 
 def cpu_kernel(*, parallel: bool = False) -> Callable[[Callable[..., Any]], Any]:

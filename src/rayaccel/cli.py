@@ -26,6 +26,7 @@ import ast
 import json
 import sys
 import traceback
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -290,7 +291,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             vmax=args.scale_max, log=not args.linear,
         )
         for (name, values), path in zip(images, paths, strict=True):
-            hm.write_png(path, hm.heatmap(values, scale))
+            hm.write_png(path, hm.heatmap_image(values, scale))
             _out(f"{path}: {name} {args.metric} per ray, mean {values.mean():.4g}, "
                  f"max {values.max():.4g}")  # fmt: skip
         _out(f"scale: {scale.vmin:g} .. {scale.vmax:g} {'log' if scale.log else 'linear'}")
@@ -324,6 +325,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         height=args.height,
         validate=args.validate,
         seed=args.seed,
+        warmup_triangles=args.warmup_triangles,
     )
     writer = report.JsonlWriter(args.json) if args.json else None
     records: list[dict[str, Any]] = []
@@ -477,6 +479,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--option", action="append", metavar="K=V",
                    help="option passed to every builder")  # fmt: skip
+    p.add_argument("--warmup-triangles", type=_positive_int, default=40_000,
+                   help="size of the compile warm-up mesh (default 40000, enough to "
+                        "reach the parallel build paths)")  # fmt: skip
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("cache", parents=[common], help="numba's cache of compiled kernels")
@@ -516,6 +521,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
+    # numba falls back to another threading layer when the installed TBB is too old;
+    # its warning says nothing a user of the CLI can act on
+    warnings.filterwarnings("ignore", message="The TBB threading layer requires")
     try:
         parser = build_parser()
         try:

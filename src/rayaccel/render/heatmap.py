@@ -318,7 +318,7 @@ def trace_counters(
     return counter_image(hits.stats, metric, camera.shape)
 
 
-def heatmap(values: npt.ArrayLike, scale: HeatScale) -> U8Array:
+def heatmap_image(values: npt.ArrayLike, scale: HeatScale) -> U8Array:
     """Return the ``(h, w, 3)`` uint8 heatmap of a ``(h, w)`` counter image."""
     array = np.asarray(values)
     if array.ndim != 2:

@@ -1,0 +1,54 @@
+# rayaccel: `make demo` sets everything up and runs the main job; `make test` runs the suite.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+SHARED_SCENES := $(abspath ../shared/scenes)
+OUT := out
+DEMO_SCENE := teapot
+
+# Tests and benchmarks find the bundled scenes through this search path when present.
+ifneq ($(wildcard $(SHARED_SCENES)),)
+export RAYACCEL_SCENE_PATH ?= $(SHARED_SCENES)
+endif
+
+.PHONY: demo test bench lint system-deps clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[test,peers]"
+	touch $(STAMP)
+
+# Open3D's wheel needs Debian's libusb-1.0-0; install it when we may (root with apt-get).
+system-deps:
+	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0; then \
+	  if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	    (apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 || \
+	     (apt-get update -q >/dev/null 2>&1 && apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1)) \
+	    || echo "note: could not install libusb-1.0-0; the Open3D peer will be skipped"; \
+	  else echo "note: libusb-1.0-0 missing; the Open3D peer will be skipped"; fi; \
+	fi
+
+demo: $(STAMP) system-deps
+	mkdir -p $(OUT)
+	$(BIN)/rayaccel list
+	$(BIN)/rayaccel bench $(DEMO_SCENE) --accel bvh2.binned_sah --rays primary,diffuse,shadow --threads 2 \
+	  --json $(OUT)/demo-bench.jsonl
+	$(BIN)/rayaccel render $(DEMO_SCENE) --accel bvh2.binned_sah --traversal bvh2.stack --view heatmap \
+	  --metric nodes -o $(OUT)/demo-heatmap.png --legend $(OUT)/demo-legend.png
+	$(BIN)/rayaccel render $(DEMO_SCENE) --accel bvh2.binned_sah --view shade -o $(OUT)/demo-shade.png
+	@echo "demo outputs in $(OUT)/"
+
+test: $(STAMP) system-deps
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP) system-deps
+	$(BIN)/python benchmarks/bench_core.py --threads 2
+
+lint: $(STAMP)
+	$(BIN)/ruff check src tests benchmarks
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis
+	find src -name __pycache__ -type d -prune -exec rm -rf {} +
