@@ -560,9 +560,15 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
         task_cb = np.ascontiguousarray(np.stack([t[4] for t in frontier]), dtype=np.float32)
         sizes = np.maximum(2 * (task_end - task_begin) - 2, 0)
         task_base = (next_node + np.concatenate(([0], np.cumsum(sizes)[:-1]))).astype(np.int32)
+        pool_end = int(next_node + sizes.sum())
         used = np.empty(len(frontier), dtype=np.int32)
-        _build_frontier(refs, task_begin, task_end, task_depth, task_node, task_base, task_cb,
-                        n_bins, max_leaf, trav, isect, t_lo, t_hi, t_first, t_count, used)
-        next_node = int(task_base[-1] + sizes[-1])
+        # Largest subtrees first, handed out one at a time, so no thread idles at the end.
+        order = np.argsort(-(task_end - task_begin), kind="stable")
+        task_begin, task_end, task_depth = task_begin[order], task_end[order], task_depth[order]
+        task_node, task_base, task_cb = task_node[order], task_base[order], task_cb[order]
+        with numba.parallel_chunksize(1):
+            _build_frontier(refs, task_begin, task_end, task_depth, task_node, task_base, task_cb,
+                            n_bins, max_leaf, trav, isect, t_lo, t_hi, t_first, t_count, used)
+        next_node = pool_end
     prim_index = np.ascontiguousarray(refs.view(np.int32)[:, 3])
     return compact_to_canonical(t_lo, t_hi, t_first, t_count, prim_index, n, next_node)
