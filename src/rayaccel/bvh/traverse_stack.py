@@ -165,31 +165,26 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                             if with_stats:
                                 n_box += 2
                                 n_bytes += PACKED_ROW_BYTES
-                            if t0 < INF32 and t1 < INF32:
-                                # Both hit: descend into the nearer, push the farther.
-                                if t1 < t0:
-                                    node = c1
-                                    far = c0
-                                    t_far = t0
-                                else:
-                                    node = c0
-                                    far = c1
-                                    t_far = t1
-                                if sp == STACK_SIZE:
-                                    overflow += 1
-                                    break
-                                stack_ref[sp] = far
-                                stack_t[sp] = t_far
-                                sp += 1
-                                if with_stats:
-                                    n_bytes += STACK_ENTRY_BYTES
-                                    peak = max(peak, sp)
-                                continue
-                            if t0 < INF32:
-                                node = c0
-                                continue
-                            if t1 < INF32:
-                                node = c1
+                            # Branch-free child order: the nearer hit child (ties: child 0)
+                            # is next; the other is written to the stack slot and kept only
+                            # when both children are hit. Misses have t = inf, so when one
+                            # child is hit, "nearer" picks it.
+                            swap = t1 < t0
+                            near = c1 if swap else c0
+                            far = c0 if swap else c1
+                            t_far = t0 if swap else t1
+                            both = t_far < INF32
+                            if sp == STACK_SIZE:
+                                overflow += 1
+                                break
+                            stack_ref[sp] = far
+                            stack_t[sp] = t_far
+                            sp += 1 if both else 0
+                            if with_stats and both:
+                                n_bytes += STACK_ENTRY_BYTES
+                                peak = max(peak, sp)
+                            if t0 < INF32 or t1 < INF32:
+                                node = near
                                 continue
                         else:
                             # Leaf: test its triangles, shrinking t_hit.
