@@ -18,10 +18,10 @@ repository root) when that folder exists and the variable is not already set.
 from __future__ import annotations
 
 import argparse
-import warnings
 import datetime
 import os
 import sys
+import warnings
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -48,7 +48,8 @@ def stripped_module(folder: Path):
     ast.fix_missing_locations(tree)
     # Registering the same key twice would clash: drop the decorated public wrapper.
     tree.body = [
-        node for node in tree.body
+        node
+        for node in tree.body
         if not (isinstance(node, ast.FunctionDef) and node.name == "trace_bvh2_stack")
     ]
     path = folder / "traverse_stack_stripped.py"
@@ -88,8 +89,10 @@ def main() -> None:
             "stripped": lambda q, s, p: stripped.trace_kernel(q, False, p),
             "stats": lambda q, s, p: traverse_stack.trace_kernel(q, True, p),
         }
-        print(f"{args.scene}: {mesh.n_triangles} triangles, {args.threads} threads, "
-              f"best of {args.repeats}")
+        print(
+            f"{args.scene}: {mesh.n_triangles} triangles, {args.threads} threads, "
+            f"best of {args.repeats}"
+        )
         for label, rays in (("primary", primary), ("diffuse", diffuse)):
             best = {}
             results = {}

@@ -199,7 +199,9 @@ class Accel:
                 mean_leaf_size=s.n_refs / max(s.n_leaves, 1),
             )
         info["bytes"] = int(s.nbytes()) + derived_bytes
-        info["options"] = {k: getattr(self.options, k) for k in getattr(self.options, "__slots__", ())}
+        info["options"] = {
+            k: getattr(self.options, k) for k in getattr(self.options, "__slots__", ())
+        }
         return info
 
     def validate(self) -> None:

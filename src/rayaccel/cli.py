@@ -110,12 +110,21 @@ def _nonnegative_int(text: str) -> int:
     return value
 
 
+def default_builder() -> str:
+    """Return the builder :func:`rayaccel.build` uses when none is named."""
+    import inspect
+
+    from rayaccel import api
+
+    return str(inspect.signature(api.build).parameters["key"].default)
+
+
 def _builder_keys(values: Sequence[str] | None, default_all: bool) -> list[str]:
     from rayaccel import registry
 
     keys = _split_list(values)
     if not keys:
-        return registry.keys("builder") if default_all else ["bvh2.binned_sah"]
+        return registry.keys("builder") if default_all else [default_builder()]
     if "all" in keys:
         return registry.keys("builder")
     for key in keys:
@@ -417,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("info", parents=[common], help="mesh statistics and structure info")
     p.add_argument("scene", help=scene_help)
-    p.add_argument("--accel", default="bvh2.binned_sah", help=accel_help)
+    p.add_argument("--accel", default=default_builder(), help=accel_help)
     p.add_argument("--option", action="append", metavar="K=V", help=option_help)
     p.add_argument("--scene-option", action="append", metavar="K=V",
                    help="procedural scene parameter, e.g. level=3")  # fmt: skip

@@ -61,7 +61,5 @@ def get(key: str, role: Role | None = None) -> Variant:
         close = difflib.get_close_matches(key, candidates, n=3, cutoff=0.5)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
         kind = role or "variant"
-        raise UnknownVariantError(
-            f"unknown {kind} {key!r}{hint} (known: {', '.join(candidates)})"
-        )
+        raise UnknownVariantError(f"unknown {kind} {key!r}{hint} (known: {', '.join(candidates)})")
     return variant

@@ -5,7 +5,8 @@ of its structure, plus the available peers of :mod:`rayaccel.bench.peers`):
 
 1. **Compile first.** Before any scene, every builder and every traversal variant
    (closest/any × plain/stats) runs once on a small procedural mesh large enough
-   to reach the parallel code paths. The first call's time is recorded as a
+   to reach the parallel code paths (``warmup_triangles``), with as many rays as
+   the primary set up to :data:`WARMUP_RAYS`. The first call's time is recorded as a
    ``compile`` record, labelled ``jit`` when numba wrote new cache files during it
    and ``cache`` when it only loaded them, so compilation never pollutes a timing.
 2. **Validate** each system on each ray set against an oracle before timing it: a
@@ -36,6 +37,7 @@ finished result if the run is interrupted.
 from __future__ import annotations
 
 import datetime
+import importlib.metadata
 import os
 import platform
 import subprocess
@@ -67,7 +69,7 @@ RTOL_OURS = 1e-5
 RTOL_PEER = 1e-3
 #: Share of the validation sample a peer may get wrong (different triangle tests).
 PEER_MISMATCH_FRACTION = 0.02
-#: Rays of the compile warm-up (above every traversal's parallel threshold).
+#: Most rays of the compile warm-up (above every traversal's parallel threshold).
 WARMUP_RAYS = 2048
 
 Record = dict[str, Any]
@@ -221,10 +223,12 @@ def threading_layer() -> str:
 
 def environment() -> Record:
     """Return the fields every record carries: versions, machine, git sha."""
-    import rayaccel
-
+    try:
+        version = importlib.metadata.version("rayaccel")
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown"
     return {
-        "rayaccel_version": rayaccel.__version__,
+        "rayaccel_version": version,
         "numba_version": numba.__version__,
         "numpy_version": np.__version__,
         "python_version": platform.python_version(),
@@ -407,10 +411,6 @@ class _Progress:
         if self._progress is not None:
             self._progress.advance(self._task)
 
-    def log(self, text: str) -> None:
-        if self._progress is not None:
-            self._progress.console.print(text, highlight=False, markup=False)
-
 
 # -- the run -----------------------------------------------------------------------------------
 
@@ -446,7 +446,6 @@ class _Run:
     def note(self, text: str) -> None:
         if text not in self.result.notes:
             self.result.notes.append(text)
-            self.ui.log(f"note: {text}")
 
     # -- compile phase ---------------------------------------------------------------------
 
@@ -454,8 +453,11 @@ class _Run:
         """Run every builder and traversal variant once on a small mesh; record the first call."""
         mesh = procedural.triangle_soup(self.config.warmup_triangles, seed=1)
         rng = np.random.Generator(np.random.PCG64(2))
-        origin = rng.uniform(-0.5, 1.5, (WARMUP_RAYS, 3))
-        target = rng.uniform(0.0, 1.0, (WARMUP_RAYS, 3))
+        # As many rays as the primary set, up to WARMUP_RAYS: the same serial or
+        # parallel kernels as the measurements get compiled
+        n_rays = min(WARMUP_RAYS, self.config.width * self.config.height)
+        origin = rng.uniform(-0.5, 1.5, (n_rays, 3))
+        target = rng.uniform(0.0, 1.0, (n_rays, 3))
         rays = RayBatch(origin, target - origin, 0.0, np.inf)
         for builder in self.config.builder_keys():
             accel, first_ms, status = self._first_call(
@@ -623,7 +625,8 @@ class _Run:
                           f"from the {ref.source} oracle; not timed")  # fmt: skip
                 self.ui.advance()
                 continue
-            seconds, _ = _timed(query, config.repeats)
+            repeats = min(config.repeats, peer.max_repeats or config.repeats)
+            seconds, _ = _timed(query, repeats)
             timing = _timing_fields(rays.n_rays, seconds)
             if peer.name == peers_mod.REFERENCE_PEER:
                 rates[kind] = timing["mrays_median"]

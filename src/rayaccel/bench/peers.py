@@ -27,8 +27,9 @@ the benchmark table. Every adapter has the same small vocabulary (trimesh's
   a one-ray cast. On Debian it needs ``libusb-1.0-0``.
 * ``trimesh``: ``trimesh.ray.ray_triangle.RayMeshIntersector``, pure numpy over
   an r-tree (needs the ``rtree`` package). It is orders of magnitude slower, so
-  it only runs on the first :attr:`TrimeshPeer.max_rays` rays of a set and on
-  meshes up to :attr:`TrimeshPeer.max_triangles` triangles; the table says so.
+  it only runs on the first :attr:`TrimeshPeer.max_rays` rays of a set, with at
+  most :attr:`TrimeshPeer.max_repeats` timed passes, and on meshes up to
+  :attr:`TrimeshPeer.max_triangles` triangles; the table says so.
 
 The rays' ``tmin`` must be 0 for ``embree`` and equal for all rays for ``open3d``
 (every standard ray set satisfies both: secondary rays offset their origins
@@ -68,6 +69,8 @@ class Peer:
         Run only the first ``max_rays`` rays of each set (None: all).
     max_triangles : int or None
         Skip meshes with more triangles (None: no limit).
+    max_repeats : int or None
+        Cap on the timed passes per measurement (None: as configured).
     """
 
     name = "peer"
@@ -77,6 +80,7 @@ class Peer:
     threads_note = ""
     max_rays: int | None = None
     max_triangles: int | None = None
+    max_repeats: int | None = None
 
     def __init__(self) -> None:
         self.threads = 0
@@ -269,8 +273,11 @@ class TrimeshPeer(Peer):
     package = "trimesh,rtree"
     extra = "pip install trimesh rtree"
     threads_note = "trimesh: numpy, single-threaded"
-    max_rays = 2048
-    max_triangles = 300_000
+    max_rays = 256
+    max_triangles = 100_000
+    max_repeats = 2
+    #: Rays per call of trimesh's intersector (bounds its candidate arrays).
+    chunk = 32
 
     def _build(self, mesh: TriangleMesh) -> None:
         import trimesh
@@ -287,22 +294,35 @@ class TrimeshPeer(Peer):
         return self.limit(rays)
 
     def _all_hits(self, rays: RayBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Return every hit ``(tri, ray, t)`` inside each ray's ``[tmin, tmax]``."""
+        """Return every hit ``(tri, ray, t)`` inside each ray's ``[tmin, tmax]``.
+
+        trimesh tests every triangle whose box meets a ray's box, all at once in
+        float64; rays go in chunks of :attr:`chunk` to bound that memory.
+        """
         from trimesh.ray.ray_triangle import ray_triangle_id
 
-        # Zero normals of degenerate triangles make their plane test fail: never hit
         mesh = self._intersector.mesh
-        tri, ray, location = ray_triangle_id(
-            mesh.triangles, rays.origin, rays.direction,
-            triangles_normal=self._normals, tree=mesh.triangles_tree, multiple_hits=True,
-        )
-        if len(tri) == 0:
+        triangles, tree = mesh.triangles, mesh.triangles_tree
+        parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        for begin in range(0, rays.n_rays, self.chunk):
+            end = min(begin + self.chunk, rays.n_rays)
+            origin, direction = rays.origin[begin:end], rays.direction[begin:end]
+            # Zero normals of degenerate triangles make their plane test fail: never hit
+            tri, ray, location = ray_triangle_id(
+                triangles, origin, direction, triangles_normal=self._normals, tree=tree,
+                multiple_hits=True,
+            )
+            if len(tri) == 0:
+                continue
+            d = direction[ray].astype(np.float64)
+            t = np.einsum("ij,ij->i", location - origin[ray], d) / np.einsum("ij,ij->i", d, d)
+            ray = ray + begin
+            keep = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray])
+            parts.append((tri[keep], ray[keep], t[keep]))
+        if not parts:
             empty = np.zeros(0, dtype=np.int64)
             return empty, empty, np.zeros(0)
-        d = rays.direction[ray].astype(np.float64)
-        t = np.einsum("ij,ij->i", location - rays.origin[ray], d) / np.einsum("ij,ij->i", d, d)
-        keep = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray])
-        return tri[keep], ray[keep], t[keep]
+        return tuple(np.concatenate(column) for column in zip(*parts, strict=True))  # type: ignore[return-value]
 
     def intersect(self, rays: Any) -> tuple[FloatArray, IntArray]:
         """Closest hits on the first :attr:`max_rays` rays, see :meth:`Peer.intersect`."""

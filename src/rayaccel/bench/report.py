@@ -77,6 +77,12 @@ def _finite(value: Any) -> Any:
     return value
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def write_atomic(path: str | os.PathLike[str], data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file, ``fsync`` and :func:`os.replace`."""
     destination = Path(path)
@@ -84,6 +90,7 @@ def write_atomic(path: str | os.PathLike[str], data: bytes) -> Path:
         prefix=f".{destination.name}.", suffix=".tmp", dir=destination.parent
     )
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600 files; honour the umask
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
             handle.flush()

@@ -1,4 +1,4 @@
-"""Binned SAH BVH construction (Wald 2007, "On fast Construction of SAH-based Bounding Volume Hierarchies").
+"""Binned SAH BVH construction (Wald 2007, "On fast Construction of SAH-based BVHs").
 
 Top-down: each node's primitives are binned by centroid into ``n_bins`` equal
 intervals of the node's *centroid* bounds on all three axes, the surface area
@@ -131,8 +131,9 @@ def _bin_scales(cb, n_bins, scale):
 
 
 @cpu_inline
-def _best_split(counts, bin_box, n_bins, scale, count, node_area, trav_cost, isect_cost,
-                suffix, child_box):
+def _best_split(
+    counts, bin_box, n_bins, scale, count, node_area, trav_cost, isect_cost, suffix, child_box
+):
     """Sweep each axis's bins; return ``(cost, axis, bin)`` of the best plane (axis -1 if none).
 
     The best plane puts bins ``<= bin`` left. ``child_box[0:6]``/``[6:12]`` receive the
@@ -207,8 +208,9 @@ def _best_split(counts, bin_box, n_bins, scale, count, node_area, trav_cost, ise
 
 
 @cpu_inline
-def _partition(refs, begin, end, axis, split_bin, cb_lo_axis, scale_axis, n_bins,
-               left_cb, right_cb):
+def _partition(
+    refs, begin, end, axis, split_bin, cb_lo_axis, scale_axis, n_bins, left_cb, right_cb
+):
     """Partition ``refs[begin:end]`` so bins ``<= split_bin`` come first; return the middle.
 
     Rows are swapped whole (32 bytes), so later passes read memory sequentially. Also
@@ -289,8 +291,23 @@ def _set_node_box(t_lo, t_hi, node, box):
 
 
 @cpu_kernel()
-def _build_subtree(refs, begin, end, depth0, root, node_base, box0, n_bins, max_leaf, trav_cost,
-                   isect_cost, t_lo, t_hi, t_first, t_count):
+def _build_subtree(
+    refs,
+    begin,
+    end,
+    depth0,
+    root,
+    node_base,
+    box0,
+    n_bins,
+    max_leaf,
+    trav_cost,
+    isect_cost,
+    t_lo,
+    t_hi,
+    t_first,
+    t_count,
+):
     """Build the subtree over ``refs[begin:end]`` serially.
 
     ``root`` is the pool slot of the subtree root (its box already written) and
@@ -334,8 +351,9 @@ def _build_subtree(refs, begin, end, depth0, root, node_base, box0, n_bins, max_
             t_first[node] = lo_i
             t_count[node] = count
             continue
-        node_area = _half_area(t_lo[node, 0], t_lo[node, 1], t_lo[node, 2],
-                               t_hi[node, 0], t_hi[node, 1], t_hi[node, 2])
+        node_area = _half_area(
+            t_lo[node, 0], t_lo[node, 1], t_lo[node, 2], t_hi[node, 0], t_hi[node, 1], t_hi[node, 2]
+        )
         forced_median = depth_forces_median(depth, count, max_leaf)
         axis = -1
         split_bin = -1
@@ -347,8 +365,18 @@ def _build_subtree(refs, begin, end, depth0, root, node_base, box0, n_bins, max_
             for a in range(3):
                 cb[a] = cb[6 + a]
             bin_prims(refs, lo_i, hi_i, cb, scale, node_bins, counts, bin_box)
-            cost, axis, split_bin = _best_split(counts, bin_box, node_bins, scale, count, node_area,
-                                                trav_cost, isect_cost, suffix, child_box)
+            cost, axis, split_bin = _best_split(
+                counts,
+                bin_box,
+                node_bins,
+                scale,
+                count,
+                node_area,
+                trav_cost,
+                isect_cost,
+                suffix,
+                child_box,
+            )
         # Leaf when splitting does not pay and the leaf is small enough.
         if count <= max_leaf and (axis < 0 or cost >= isect_cost * count):
             t_first[node] = lo_i
@@ -359,8 +387,18 @@ def _build_subtree(refs, begin, end, depth0, root, node_base, box0, n_bins, max_
         t_first[node] = left
         t_count[node] = 0
         if axis >= 0:
-            mid = _partition(refs, lo_i, hi_i, axis, split_bin, cb[6 + axis], scale[axis],
-                             node_bins, left_cb, right_cb)
+            mid = _partition(
+                refs,
+                lo_i,
+                hi_i,
+                axis,
+                split_bin,
+                cb[6 + axis],
+                scale[axis],
+                node_bins,
+                left_cb,
+                right_cb,
+            )
             for k in range(3):
                 t_lo[left, k] = child_box[k]
                 t_hi[left, k] = child_box[3 + k]
@@ -426,21 +464,51 @@ def _bin_parallel(refs, begin, end, cb_lo, scale, n_bins, n_chunks):
 
 
 @cpu_kernel()
-def _split_large(refs, begin, end, depth, node, left, cb_in, counts, bin_box, n_bins, max_leaf,
-                 trav_cost, isect_cost, scale, t_lo, t_hi, t_first, t_count, out_cb):
+def _split_large(
+    refs,
+    begin,
+    end,
+    depth,
+    node,
+    left,
+    cb_in,
+    counts,
+    bin_box,
+    n_bins,
+    max_leaf,
+    trav_cost,
+    isect_cost,
+    scale,
+    t_lo,
+    t_hi,
+    t_first,
+    t_count,
+    out_cb,
+):
     """Split one large node with precomputed bins; return the partition point (-1: leaf)."""
     count = end - begin
     suffix = np.empty((n_bins, 7), dtype=np.float32)
     child_box = np.empty(12, dtype=np.float32)
     half = np.empty(12, dtype=np.float32)
-    node_area = _half_area(t_lo[node, 0], t_lo[node, 1], t_lo[node, 2],
-                           t_hi[node, 0], t_hi[node, 1], t_hi[node, 2])
+    node_area = _half_area(
+        t_lo[node, 0], t_lo[node, 1], t_lo[node, 2], t_hi[node, 0], t_hi[node, 1], t_hi[node, 2]
+    )
     axis = -1
     split_bin = -1
     cost = np.inf
     if not depth_forces_median(depth, count, max_leaf) and counts.shape[1] > 0:
-        cost, axis, split_bin = _best_split(counts, bin_box, n_bins, scale, count, node_area,
-                                            trav_cost, isect_cost, suffix, child_box)
+        cost, axis, split_bin = _best_split(
+            counts,
+            bin_box,
+            n_bins,
+            scale,
+            count,
+            node_area,
+            trav_cost,
+            isect_cost,
+            suffix,
+            child_box,
+        )
     if count <= max_leaf and (axis < 0 or cost >= isect_cost * count):
         t_first[node] = begin
         t_count[node] = count
@@ -448,8 +516,18 @@ def _split_large(refs, begin, end, depth, node, left, cb_in, counts, bin_box, n_
     t_first[node] = left
     t_count[node] = 0
     if axis >= 0:
-        mid = _partition(refs, begin, end, axis, split_bin, cb_in[axis], scale[axis], n_bins,
-                         out_cb[0], out_cb[1])
+        mid = _partition(
+            refs,
+            begin,
+            end,
+            axis,
+            split_bin,
+            cb_in[axis],
+            scale[axis],
+            n_bins,
+            out_cb[0],
+            out_cb[1],
+        )
         for k in range(3):
             t_lo[left, k] = child_box[k]
             t_hi[left, k] = child_box[3 + k]
@@ -469,8 +547,24 @@ def _split_large(refs, begin, end, depth, node, left, cb_in, counts, bin_box, n_
 
 
 @cpu_kernel(parallel=True)
-def _build_frontier(refs, task_begin, task_end, task_depth, task_node, task_base, task_cb,
-                    n_bins, max_leaf, trav_cost, isect_cost, t_lo, t_hi, t_first, t_count, used):
+def _build_frontier(
+    refs,
+    task_begin,
+    task_end,
+    task_depth,
+    task_node,
+    task_base,
+    task_cb,
+    n_bins,
+    max_leaf,
+    trav_cost,
+    isect_cost,
+    t_lo,
+    t_hi,
+    t_first,
+    t_count,
+    used,
+):
     """Build every frontier subtree concurrently, each into its reserved node block."""
     for i in prange(task_begin.shape[0]):
         box0 = np.empty(12, dtype=np.float32)
@@ -480,9 +574,23 @@ def _build_frontier(refs, task_begin, task_end, task_depth, task_node, task_base
             box0[3 + k] = t_hi[node, k]
         for k in range(6):
             box0[6 + k] = task_cb[i, k]
-        used[i] = _build_subtree(refs, task_begin[i], task_end[i], task_depth[i], node,
-                                 task_base[i], box0, n_bins, max_leaf, trav_cost, isect_cost,
-                                 t_lo, t_hi, t_first, t_count)
+        used[i] = _build_subtree(
+            refs,
+            task_begin[i],
+            task_end[i],
+            task_depth[i],
+            node,
+            task_base[i],
+            box0,
+            n_bins,
+            max_leaf,
+            trav_cost,
+            isect_cost,
+            t_lo,
+            t_hi,
+            t_first,
+            t_count,
+        )
 
 
 @register(
@@ -536,14 +644,33 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
         with np.errstate(divide="ignore"):
             scale[:] = np.where(extent > 0, np.float32(n_bins) * np.float32(0.99999) / extent, 0)
         if (scale > 0).any():
-            counts, bin_box = _bin_parallel(refs, begin, end, cb[0:3].copy(), scale, n_bins,
-                                            n_chunks)
+            counts, bin_box = _bin_parallel(
+                refs, begin, end, cb[0:3].copy(), scale, n_bins, n_chunks
+            )
         else:
             counts = np.zeros((3, 0), dtype=np.int32)
             bin_box = np.zeros((3, 0, 6), dtype=np.float32)
-        mid = _split_large(refs, begin, end, depth, node, next_node, cb[0:3].copy(), counts,
-                           bin_box, n_bins, max_leaf, trav, isect, scale, t_lo, t_hi, t_first,
-                           t_count, out_cb)
+        mid = _split_large(
+            refs,
+            begin,
+            end,
+            depth,
+            node,
+            next_node,
+            cb[0:3].copy(),
+            counts,
+            bin_box,
+            n_bins,
+            max_leaf,
+            trav,
+            isect,
+            scale,
+            t_lo,
+            t_hi,
+            t_first,
+            t_count,
+            out_cb,
+        )
         if mid < 0:
             continue
         left = next_node
@@ -567,8 +694,24 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
         task_begin, task_end, task_depth = task_begin[order], task_end[order], task_depth[order]
         task_node, task_base, task_cb = task_node[order], task_base[order], task_cb[order]
         with numba.parallel_chunksize(1):
-            _build_frontier(refs, task_begin, task_end, task_depth, task_node, task_base, task_cb,
-                            n_bins, max_leaf, trav, isect, t_lo, t_hi, t_first, t_count, used)
+            _build_frontier(
+                refs,
+                task_begin,
+                task_end,
+                task_depth,
+                task_node,
+                task_base,
+                task_cb,
+                n_bins,
+                max_leaf,
+                trav,
+                isect,
+                t_lo,
+                t_hi,
+                t_first,
+                t_count,
+                used,
+            )
         next_node = pool_end
     prim_index = np.ascontiguousarray(refs.view(np.int32)[:, 3])
     return compact_to_canonical(t_lo, t_hi, t_first, t_count, prim_index, n, next_node)

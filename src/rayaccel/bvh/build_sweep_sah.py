@@ -55,9 +55,10 @@ class SweepSahOptions:
 
 
 @cpu_kernel()
-def _sweep_build(order, prim_lo, prim_hi, max_leaf, trav_cost, isect_cost,
-                 t_lo, t_hi, t_first, t_count):
-    """Build over ``order (3, n)`` (primitive ids sorted by centroid per axis); return node count."""
+def _sweep_build(
+    order, prim_lo, prim_hi, max_leaf, trav_cost, isect_cost, t_lo, t_hi, t_first, t_count
+):
+    """Build over ``order (3, n)`` (ids sorted by centroid per axis); return the node count."""
     n = order.shape[1]
     right_area = np.empty(n + 1, dtype=np.float64)
     goes_left = np.zeros(prim_lo.shape[0], dtype=np.uint8)
@@ -229,7 +230,16 @@ def build_sweep_sah(mesh: TriangleMesh, options: SweepSahOptions | None = None) 
     t_hi = np.empty((capacity, 3), dtype=np.float32)
     t_first = np.zeros(capacity, dtype=np.int32)
     t_count = np.zeros(capacity, dtype=np.int32)
-    n_used = _sweep_build(order, prim_lo, prim_hi, int(opt.max_leaf_size),
-                          float(opt.traversal_cost), float(opt.intersection_cost),
-                          t_lo, t_hi, t_first, t_count)
+    n_used = _sweep_build(
+        order,
+        prim_lo,
+        prim_hi,
+        int(opt.max_leaf_size),
+        float(opt.traversal_cost),
+        float(opt.intersection_cost),
+        t_lo,
+        t_hi,
+        t_first,
+        t_count,
+    )
     return compact_to_canonical(t_lo, t_hi, t_first, t_count, order[0].copy(), n, int(n_used))

@@ -81,7 +81,9 @@ class Bvh2:
 
     def arrays(self) -> Bvh2Arrays:
         """Return the arrays as a NamedTuple kernels take as one argument."""
-        return Bvh2Arrays(self.node_lo, self.node_hi, self.node_first, self.node_count, self.prim_index)
+        return Bvh2Arrays(
+            self.node_lo, self.node_hi, self.node_first, self.node_count, self.prim_index
+        )
 
     @property
     def n_nodes(self) -> int:
@@ -121,7 +123,9 @@ class Bvh2:
             extent[:, 0] * extent[:, 1] + extent[:, 1] * extent[:, 2] + extent[:, 2] * extent[:, 0]
         )
         leaf = self.node_count > 0
-        total = inner_cost * area[~leaf].sum() + prim_cost * (area[leaf] * self.node_count[leaf]).sum()
+        total = (
+            inner_cost * area[~leaf].sum() + prim_cost * (area[leaf] * self.node_count[leaf]).sum()
+        )
         root_area = area[0]
         if root_area <= 0.0:
             return float(prim_cost * self.n_refs) if leaf[0] else float(inner_cost + prim_cost)
@@ -168,17 +172,21 @@ class Bvh2:
         if self.n_refs == self.n_prims and np.unique(self.prim_index).size != self.n_prims:
             raise StructureInvariantError("bvh2: a primitive appears in two leaves")
         if triangles is not None:
+            # Leaves tile prim_index in order of their first slot (checked above).
             leaf = np.flatnonzero(self.node_count > 0)
-            leaf_of_ref = np.repeat(leaf, self.node_count[leaf])
             order = np.argsort(self.node_first[leaf], kind="stable")
             leaf_of_ref = np.repeat(leaf[order], self.node_count[leaf][order])
             tri = triangles[self.prim_index]
             tri_lo, tri_hi = tri.min(axis=1), tri.max(axis=1)
             exact = self.n_refs == self.n_prims
             if exact:
-                outside = (tri_lo < self.node_lo[leaf_of_ref]) | (tri_hi > self.node_hi[leaf_of_ref])
+                outside = (tri_lo < self.node_lo[leaf_of_ref]) | (
+                    tri_hi > self.node_hi[leaf_of_ref]
+                )
             else:
-                outside = (tri_hi < self.node_lo[leaf_of_ref]) | (tri_lo > self.node_hi[leaf_of_ref])
+                outside = (tri_hi < self.node_lo[leaf_of_ref]) | (
+                    tri_lo > self.node_hi[leaf_of_ref]
+                )
             if outside.any():
                 ref = int(np.argwhere(outside.any(axis=1))[0, 0])
                 raise StructureInvariantError(
@@ -234,7 +242,10 @@ def _check_topology(bvh, max_depth):
         for c in range(2):
             child = first + c
             for a in range(3):
-                if bvh.node_lo[child, a] < bvh.node_lo[node, a] or bvh.node_hi[child, a] > bvh.node_hi[node, a]:
+                if (
+                    bvh.node_lo[child, a] < bvh.node_lo[node, a]
+                    or bvh.node_hi[child, a] > bvh.node_hi[node, a]
+                ):
                     return 6, child
         # Push right first so the left subtree's leaves come first.
         stack[sp] = first + 1

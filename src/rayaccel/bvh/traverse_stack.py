@@ -111,8 +111,12 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                 valid = (
                     t_lo <= tmax[r]
                     and not (dx == 0 and dy == 0 and dz == 0)
-                    and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
-                    and np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
+                    and np.isfinite(dx)
+                    and np.isfinite(dy)
+                    and np.isfinite(dz)
+                    and np.isfinite(ox)
+                    and np.isfinite(oy)
+                    and np.isfinite(oz)
                 )
                 if valid:
                     # Per-ray constants: reciprocal direction and near/far plane offsets.
@@ -134,8 +138,22 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                     sp = 0
                     # The root box is tested once up front.
                     rb = bvh.root_box
-                    entry = ray_box_entry(ox, oy, oz, ix, iy, iz, rb[nx], rb[ny], rb[nz],
-                                          rb[fx], rb[fy], rb[fz], t_lo, t_hit)
+                    entry = ray_box_entry(
+                        ox,
+                        oy,
+                        oz,
+                        ix,
+                        iy,
+                        iz,
+                        rb[nx],
+                        rb[ny],
+                        rb[nz],
+                        rb[fx],
+                        rb[fy],
+                        rb[fz],
+                        t_lo,
+                        t_hit,
+                    )
                     if with_stats:
                         n_box += 1
                     node = bvh.root_ref[0]
@@ -153,15 +171,38 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                 prefetch_row(box, c0)
                             if c1 >= 0:
                                 prefetch_row(box, c1)
-                            t0 = ray_box_entry(ox, oy, oz, ix, iy, iz,
-                                               box[node, nx], box[node, ny], box[node, nz],
-                                               box[node, fx], box[node, fy], box[node, fz],
-                                               t_lo, t_hit)
-                            t1 = ray_box_entry(ox, oy, oz, ix, iy, iz,
-                                               box[node, 6 + nx], box[node, 6 + ny],
-                                               box[node, 6 + nz], box[node, 6 + fx],
-                                               box[node, 6 + fy], box[node, 6 + fz],
-                                               t_lo, t_hit)
+                            t0 = ray_box_entry(
+                                ox,
+                                oy,
+                                oz,
+                                ix,
+                                iy,
+                                iz,
+                                box[node, nx],
+                                box[node, ny],
+                                box[node, nz],
+                                box[node, fx],
+                                box[node, fy],
+                                box[node, fz],
+                                t_lo,
+                                t_hit,
+                            )
+                            t1 = ray_box_entry(
+                                ox,
+                                oy,
+                                oz,
+                                ix,
+                                iy,
+                                iz,
+                                box[node, 6 + nx],
+                                box[node, 6 + ny],
+                                box[node, 6 + nz],
+                                box[node, 6 + fx],
+                                box[node, 6 + fy],
+                                box[node, 6 + fz],
+                                t_lo,
+                                t_hit,
+                            )
                             if with_stats:
                                 n_box += 2
                                 n_bytes += PACKED_ROW_BYTES
@@ -194,8 +235,9 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                             if with_stats:
                                 n_bytes += LEAF_BYTES + _PRIM_BYTES * (last - first)
                             for i in range(first, last):
-                                t, u, v = ray_triangle(bvh.tri, i, okx, oky, okz, kx, ky, kz,
-                                                       Sx, Sy, Sz, t_lo, t_hit)
+                                t, u, v = ray_triangle(
+                                    bvh.tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit
+                                )
                                 if with_stats:
                                     n_prim += 1
                                 if t < t_hit:
@@ -248,7 +290,9 @@ def packed_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) -
     return packed
 
 
-def run_trace(kernel_for: Any, layout_arrays: Any, rays: RayBatch, query: str, stats: bool) -> HitBatch:
+def run_trace(
+    kernel_for: Any, layout_arrays: Any, rays: RayBatch, query: str, stats: bool
+) -> HitBatch:
     """Allocate outputs, run a ``kernel_for(query, stats, parallel)`` kernel, wrap the hits.
 
     Shared by every BVH traversal whose kernel has the signature of :func:`trace_kernel`.
@@ -262,11 +306,31 @@ def run_trace(kernel_for: Any, layout_arrays: Any, rays: RayBatch, query: str, s
     kernel = kernel_for(QUERIES[query], bool(stats), parallel)
     if parallel:
         with parallel_section(), numba.parallel_chunksize(1):
-            overflow = kernel(layout_arrays, rays.origin, rays.direction, rays.tmin, rays.tmax,
-                              hits.t, hits.prim, hits.u, hits.v, counters)
+            overflow = kernel(
+                layout_arrays,
+                rays.origin,
+                rays.direction,
+                rays.tmin,
+                rays.tmax,
+                hits.t,
+                hits.prim,
+                hits.u,
+                hits.v,
+                counters,
+            )
     else:
-        overflow = kernel(layout_arrays, rays.origin, rays.direction, rays.tmin, rays.tmax,
-                          hits.t, hits.prim, hits.u, hits.v, counters)
+        overflow = kernel(
+            layout_arrays,
+            rays.origin,
+            rays.direction,
+            rays.tmin,
+            rays.tmax,
+            hits.t,
+            hits.prim,
+            hits.u,
+            hits.v,
+            counters,
+        )
     if overflow:
         raise TraversalOverflowError(
             f"{overflow} rays overflowed the {STACK_SIZE}-entry traversal stack; "

@@ -29,7 +29,9 @@ TWO_ULP = np.float32(2.0**-22)
 INF = np.float32(np.inf)
 
 
-def ray_box_entry_py(ox, oy, oz, ix, iy, iz, near_x, near_y, near_z, far_x, far_y, far_z, tmin, tmax):
+def ray_box_entry_py(
+    ox, oy, oz, ix, iy, iz, near_x, near_y, near_z, far_x, far_y, far_z, tmin, tmax
+):
     """Return the distance at which the ray enters the box, or ``inf`` if it misses.
 
     Parameters

@@ -42,7 +42,9 @@ def _as_interval(name: str, value: object, n: int) -> FloatArray:
     try:
         array = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{name}: expected a float scalar or an (n,) array ({exc})") from exc
+        raise InvalidInputError(
+            f"{name}: expected a float scalar or an (n,) array ({exc})"
+        ) from exc
     if array.ndim == 0:
         array = np.full(n, array, dtype=np.float64)
     if array.shape != (n,):
@@ -83,7 +85,12 @@ class RayBatch:
         direction = _as_vectors("directions", direction_raw, n)
         tmin = _as_interval("tmin", 0.0 if self.tmin is None else self.tmin, n)
         tmax = _as_interval("tmax", np.inf if self.tmax is None else self.tmax, n)
-        for name, value in (("origin", origin), ("direction", direction), ("tmin", tmin), ("tmax", tmax)):
+        for name, value in (
+            ("origin", origin),
+            ("direction", direction),
+            ("tmin", tmin),
+            ("tmax", tmax),
+        ):
             object.__setattr__(self, name, value)
 
     def __len__(self) -> int:
@@ -95,14 +102,19 @@ class RayBatch:
         return int(self.origin.shape[0])
 
     def valid(self) -> BoolArray:
-        """Return which rays can hit anything: finite origin, finite non-zero direction, tmin <= tmax."""
+        """Return which rays can hit anything.
+
+        A valid ray has a finite origin, a finite non-zero direction and ``tmin <= tmax``.
+        """
         finite = np.isfinite(self.origin).all(axis=1) & np.isfinite(self.direction).all(axis=1)
         nonzero = (self.direction != 0).any(axis=1)
         return finite & nonzero & (self.tmin <= self.tmax)
 
     def subset(self, index: object) -> RayBatch:
         """Return the rays selected by ``index`` (a slice, mask or index array)."""
-        return RayBatch(self.origin[index], self.direction[index], self.tmin[index], self.tmax[index])
+        return RayBatch(
+            self.origin[index], self.direction[index], self.tmin[index], self.tmax[index]
+        )
 
 
 @dataclass(frozen=True, slots=True, eq=False)

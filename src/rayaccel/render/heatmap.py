@@ -406,12 +406,19 @@ def write_png(path: str | os.PathLike[str], image: npt.ArrayLike) -> Path:
     return write_bytes_atomic(path, buffer.getvalue())
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file and :func:`os.replace`."""
     destination = Path(path)
     directory = destination.parent if str(destination.parent) else Path(".")
     fd, temp_name = tempfile.mkstemp(prefix=f".{destination.name}.", suffix=".tmp", dir=directory)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600 files; honour the umask
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
             handle.flush()

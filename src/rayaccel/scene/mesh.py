@@ -131,4 +131,7 @@ class TriangleMesh:
         return unit.astype(REAL)
 
     def __repr__(self) -> str:
-        return f"TriangleMesh(name={self.name!r}, n_triangles={self.n_triangles}, n_vertices={self.n_vertices})"
+        return (
+            f"TriangleMesh(name={self.name!r}, n_triangles={self.n_triangles}, "
+            f"n_vertices={self.n_vertices})"
+        )
