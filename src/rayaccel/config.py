@@ -5,7 +5,7 @@
 
 Numba's default ``workqueue`` threading layer aborts the process when two Python
 threads enter parallel kernels at once. We therefore ask for a thread-safe layer
-(``tbb`` or ``omp``) when one is installed and otherwise serialise parallel
+(``omp`` or ``tbb``) when one is installed and otherwise serialise parallel
 kernel launches behind :data:`PARALLEL_LOCK` (see :func:`parallel_section`).
 """
 
@@ -22,9 +22,9 @@ DEBUG: bool = os.environ.get("RAYACCEL_DEBUG", "0") not in ("", "0", "false", "F
 SCENE_PATH_VAR = "RAYACCEL_SCENE_PATH"
 
 if "NUMBA_THREADING_LAYER" not in os.environ:
-    # 'safe' picks tbb if present; otherwise numba falls back to what exists, and the
-    # lock below keeps workqueue from being entered concurrently.
-    numba.config.THREADING_LAYER_PRIORITY = ["tbb", "omp", "workqueue"]
+    # OpenMP first (libgomp ships with gcc), then TBB (skipped with a warning when the
+    # installed TBB is too old for numba); workqueue last, guarded by the lock below.
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 PARALLEL_LOCK = threading.RLock()
 

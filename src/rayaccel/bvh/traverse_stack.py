@@ -277,7 +277,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
 
 
 #: Batches smaller than this run on the calling thread (no parallel launch overhead).
-PARALLEL_MIN_RAYS = 512
+PARALLEL_MIN_RAYS = 4096
 
 
 def packed_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) -> PackedBvh2:

@@ -1,0 +1,161 @@
+"""Import layering (STYLE §2), checked by parsing every module's imports with ``ast``.
+
+Layers, lowest first: 0 ``_jit dtypes errors counters config _variant``;
+1 ``kernels``; 2 ``scene rays``; 3 ``bvh kdtree grid``; 4 ``cuda``; 5 ``registry
+metrics``; 6 ``api``; 7 ``render bench``; 8 ``cli``. A module imports only from its
+own layer or lower ones; sibling packages of one layer (``scene``/``rays``,
+``bvh``/``kdtree``/``grid``, ``registry``/``metrics``, ``render``/``bench``) stay
+independent. The package ``__init__``/``__main__`` re-export and are exempt.
+Imports inside functions and under ``TYPE_CHECKING`` count too.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+from pathlib import Path
+
+import pytest
+
+import rayaccel
+from rayaccel import registry
+
+SRC = Path(rayaccel.__file__).resolve().parent
+
+LAYERS: dict[str, int] = {
+    "_jit": 0, "dtypes": 0, "errors": 0, "counters": 0, "config": 0, "_variant": 0,
+    "kernels": 1,
+    "scene": 2, "rays": 2,
+    "bvh": 3, "kdtree": 3, "grid": 3,
+    "cuda": 4,
+    "registry": 5, "metrics": 5,
+    "api": 6,
+    "render": 7, "bench": 7,
+    "cli": 8,
+}
+#: Layer-0 modules are one foundation and may import each other; packages may not.
+FOUNDATION = 0
+EXEMPT = {"__init__", "__main__"}
+#: Third-party imports reserved to some layers (STYLE §2).
+RESERVED = {"matplotlib": 7, "rich": 7}
+
+
+def _modules() -> list[tuple[str, Path]]:
+    out = []
+    for path in sorted(SRC.rglob("*.py")):
+        rel = path.relative_to(SRC).with_suffix("")
+        out.append((".".join(("rayaccel", *rel.parts)), path))
+    return out
+
+
+def _component(module: str) -> str | None:
+    """The layer component of ``rayaccel.x.y`` (``x``), or None for the package root."""
+    parts = module.split(".")
+    if parts[0] != "rayaccel" or len(parts) < 2:
+        return None
+    return parts[1]
+
+
+def _imports(path: Path, module: str) -> list[tuple[int, str]]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                found.append((node.lineno, "." * node.level + (node.module or "")))
+            elif node.module == "rayaccel":
+                found += [(node.lineno, f"rayaccel.{a.name}") for a in node.names]
+            else:
+                found.append((node.lineno, node.module or ""))
+    return found
+
+
+MODULES = _modules()
+
+
+def test_every_module_has_a_layer():
+    unknown = {_component(m) for m, _ in MODULES} - set(LAYERS) - EXEMPT - {None}
+    assert not unknown, f"modules outside every layer (add them to STYLE §2): {unknown}"
+
+
+@pytest.mark.parametrize(("module", "path"), MODULES, ids=[m for m, _ in MODULES])
+def test_imports_respect_layers(module, path):
+    own = _component(module)
+    problems = []
+    for line, target in _imports(path, module):
+        if target.startswith("."):
+            problems.append(f"line {line}: relative import {target!r} (imports are absolute)")
+            continue
+        top = target.split(".")[0]
+        if top in RESERVED and own not in EXEMPT and LAYERS.get(own, 99) < RESERVED[top]:
+            problems.append(f"line {line}: {target} is reserved to layers >= {RESERVED[top]}")
+        if target == "numba.cuda" or target.startswith("numba.cuda."):
+            if own != "cuda":
+                problems.append(f"line {line}: only rayaccel.cuda imports numba.cuda")
+        if top != "rayaccel" or own in EXEMPT:
+            continue
+        other = _component(target)
+        if other is None or other in EXEMPT:
+            problems.append(f"line {line}: imports the package root ({target})")
+            continue
+        if other == own or other not in LAYERS:
+            continue
+        mine, theirs = LAYERS[own], LAYERS[other]
+        if theirs > mine:
+            problems.append(f"line {line}: layer {mine} ({own}) imports upward: {target} "
+                            f"(layer {theirs})")
+        elif theirs == mine and mine != FOUNDATION:
+            problems.append(f"line {line}: {own} imports its sibling {other} ({target})")
+    assert not problems, f"{module}:\n" + "\n".join(problems)
+
+
+def test_checker_catches_violations(tmp_path):
+    """The parser sees upward, sibling, relative and in-function imports."""
+    bad = tmp_path / "bad.py"
+    bad.write_text(
+        "from rayaccel import api\n"
+        "from . import layout\n"
+        "def f():\n    import rayaccel.rays.batch\n"
+        "from typing import TYPE_CHECKING\n"
+        "if TYPE_CHECKING:\n    from rayaccel.registry import get\n"
+    )
+    targets = sorted(t for _, t in _imports(bad, "rayaccel.scene.bad"))
+    assert targets == sorted(["rayaccel.api", ".", "rayaccel.rays.batch", "typing",
+                              "rayaccel.registry"])
+
+
+def _variant_modules() -> set[str]:
+    """Every ``build_*``/``traverse_*`` module, and every ``cuda`` module, under src."""
+    wanted = set()
+    for module, path in MODULES:
+        name = path.stem
+        if name.startswith(("build_", "traverse_")):
+            wanted.add(module)
+        elif _component(module) == "cuda" and not name.startswith("_") and name not in EXEMPT:
+            wanted.add(module)
+    return wanted
+
+
+def test_builtin_modules_list_every_variant_module():
+    listed = set(registry.BUILTIN_MODULES)
+    missing = _variant_modules() - listed
+    assert not missing, f"registry.BUILTIN_MODULES misses {sorted(missing)}"
+    assert len(listed) == len(registry.BUILTIN_MODULES), "duplicates in BUILTIN_MODULES"
+    assert _variant_modules(), "no build_/traverse_ module found (wrong source path?)"
+
+
+def test_builtin_modules_exist_and_register():
+    from rayaccel._variant import REGISTRY
+
+    registry.keys()  # load
+    registering = {v.func.__module__ for v in REGISTRY.values()}
+    for module in registry.BUILTIN_MODULES:
+        if module.startswith("rayaccel.cuda"):
+            continue  # registers only when numba.cuda imports
+        importlib.import_module(module)
+        assert module in registering, f"{module} registers no variant"
+    # Every registered variant comes from a listed module (nothing registers by accident).
+    stray = registering - set(registry.BUILTIN_MODULES)
+    assert not stray, f"variants registered outside BUILTIN_MODULES: {stray}"

@@ -1,0 +1,180 @@
+"""Property tests (hypothesis): awkward geometry and rays, every structure equals the oracle.
+
+Meshes are drawn from a small lattice of coordinates so that shared vertices,
+coplanar and duplicated triangles, zero-area (repeated vertex) and collinear
+triangles are common; rays start at vertices, on edges and faces, inside node
+boxes and outside, with axis-parallel and ``±0.0`` direction components. Each
+example builds with every registered builder (leaf sizes 1..8) and compares
+closest and any-hit queries of every traversal with the brute-force oracle.
+Examples are bounded by the ``default`` profile in ``conftest.py`` (``--full`` for
+more).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import reference
+from hypothesis import assume, given
+from hypothesis import strategies as st
+
+import rayaccel
+from rayaccel import registry
+from rayaccel.rays.batch import RayBatch
+
+PAIRS = [
+    pytest.param(b.key, t, id=f"{b.key}-{t}")
+    for b in registry.variants("builder") for t in registry.keys("traversal", b.structure)
+]
+
+LATTICE = (-2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
+coordinate = st.one_of(
+    st.sampled_from(LATTICE),
+    st.floats(-4.0, 4.0, width=32, allow_nan=False, allow_infinity=False),
+)
+point = st.tuples(coordinate, coordinate, coordinate)
+component = st.one_of(
+    st.sampled_from((1.0, -1.0, 0.0, -0.0, 0.5, -2.0)),
+    st.floats(-3.0, 3.0, width=32, allow_nan=False, allow_infinity=False),
+)
+
+
+@st.composite
+def meshes(draw, max_triangles: int = 14) -> rayaccel.TriangleMesh:
+    """Triangles over a shared vertex pool, with duplicates and degenerate ones."""
+    pool = draw(st.lists(point, min_size=3, max_size=10))
+    n = draw(st.integers(1, max_triangles))
+    faces = []
+    for _ in range(n):
+        kind = draw(st.sampled_from(("plain", "plain", "plain", "dup", "zero", "collinear")))
+        if kind == "dup" and faces:
+            faces.append(draw(st.sampled_from(faces)))
+            continue
+        a, b, c = (draw(st.integers(0, len(pool) - 1)) for _ in range(3))
+        if kind == "zero":
+            c = a
+        elif kind == "collinear":
+            pa, pb = np.array(pool[a]), np.array(pool[b])
+            pool.append(tuple(float(x) for x in (pa + pb) / 2))
+            c = len(pool) - 1
+        faces.append((a, b, c))
+    return rayaccel.TriangleMesh(np.array(pool, dtype=np.float64), np.array(faces))
+
+
+@st.composite
+def ray_batches(draw, mesh: rayaccel.TriangleMesh, max_rays: int = 24) -> RayBatch:
+    """Rays from vertices, edge and face points, box corners and random points."""
+    tri = mesh.triangles().astype(np.float64)
+    lo, hi = mesh.bounds()
+    n = draw(st.integers(1, max_rays))
+    origins, directions, tmins, tmaxs = [], [], [], []
+    for _ in range(n):
+        f = draw(st.integers(0, len(tri) - 1))
+        a, b, c = tri[f]
+        where = draw(st.sampled_from(("vertex", "edge", "face", "corner", "free", "free")))
+        if where == "vertex":
+            o = a
+        elif where == "edge":
+            o = (a + b) / 2
+        elif where == "face":
+            o = (a + b + c) / 3
+        elif where == "corner":
+            o = np.where(draw(st.tuples(*[st.booleans()] * 3)), lo, hi)
+        else:
+            o = np.array(draw(point))
+        if draw(st.booleans()):
+            # Aim at a vertex, edge midpoint or centroid of some triangle.
+            g = tri[draw(st.integers(0, len(tri) - 1))]
+            target = draw(st.sampled_from((g[0], (g[0] + g[1]) / 2, g.mean(axis=0))))
+            d = target - o
+        else:
+            d = np.array(draw(st.tuples(component, component, component)))
+        origins.append(o)
+        directions.append(d)
+        interval = draw(st.sampled_from(("open", "open", "open", "finite", "empty")))
+        tmin, tmax = 0.0, np.inf
+        if interval == "finite":
+            tmin = draw(st.floats(0.0, 1.0, width=32))
+            tmax = tmin + draw(st.floats(0.0, 4.0, width=32))
+        elif interval == "empty":
+            tmin, tmax = 1.0, 0.5
+        tmins.append(tmin)
+        tmaxs.append(tmax)
+    return RayBatch(np.array(origins), np.array(directions), np.array(tmins), np.array(tmaxs))
+
+
+def _check(mesh: rayaccel.TriangleMesh, rays: RayBatch, builder: str, traversal: str,
+           leaf: int) -> None:
+    accel = rayaccel.build(mesh, builder, max_leaf_size=leaf)
+    accel.validate()
+    tri = reference.tri9(mesh)
+    ref = reference.oracle(mesh, rays)
+    closest = accel.trace(rays, traversal=traversal)
+    reference.assert_closest_matches(tri, rays, closest, ref)
+    reference.assert_any_matches(tri, rays, accel.trace(rays, query="any", traversal=traversal),
+                                 ref)
+    counted = accel.trace(rays, traversal=traversal, stats=True)
+    reference.assert_hits_identical(closest, counted)
+    reference.check_counter_invariants(rays, counted)
+
+
+@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+@given(data=st.data(), leaf=st.sampled_from((1, 2, 8)))
+def test_random_meshes_match_oracle(builder, traversal, data, leaf):
+    mesh = data.draw(meshes())
+    rays = data.draw(ray_batches(mesh))
+    _check(mesh, rays, builder, traversal, leaf)
+
+
+@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+@given(data=st.data())
+def test_single_triangle(builder, traversal, data):
+    mesh = data.draw(meshes(max_triangles=1))
+    rays = data.draw(ray_batches(mesh))
+    _check(mesh, rays, builder, traversal, 1)
+    # The readable pure-Python oracle agrees on the hit mask.
+    py = reference.python_trace(reference.tri9(mesh), rays)
+    ours = rayaccel.build(mesh, builder).trace(rays, traversal=traversal)
+    assert np.array_equal(py.prim, ours.prim)
+
+
+@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+@given(
+    data=st.data(),
+    axis=st.integers(0, 2),
+    sign=st.sampled_from((1.0, -1.0)),
+    zeros=st.tuples(st.sampled_from((0.0, -0.0)), st.sampled_from((0.0, -0.0))),
+)
+def test_axis_parallel_rays(builder, traversal, data, axis, sign, zeros):
+    """Directions with two zero components of either sign, from lattice points."""
+    mesh = data.draw(meshes())
+    lo, hi = mesh.bounds()
+    n = 32
+    origin = np.array([data.draw(point) for _ in range(n)])
+    # Move some origins onto the mesh's box faces.
+    on_face = np.array([data.draw(st.booleans()) for _ in range(n)])
+    origin[on_face, axis] = lo[axis] if sign > 0 else hi[axis]
+    direction = np.empty((n, 3))
+    others = [k for k in range(3) if k != axis]
+    direction[:, axis] = sign
+    direction[:, others[0]], direction[:, others[1]] = zeros
+    rays = RayBatch(origin, direction)
+    _check(mesh, rays, builder, traversal, data.draw(st.sampled_from((1, 4))))
+
+
+@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+@given(data=st.data())
+def test_origins_inside_node_boxes(builder, traversal, data):
+    """Rays starting inside (and on the faces of) the BVH's own node boxes."""
+    mesh = data.draw(meshes())
+    accel = rayaccel.build(mesh, builder, max_leaf_size=1)
+    s = accel.structure
+    nodes = [data.draw(st.integers(0, s.n_nodes - 1)) for _ in range(16)]
+    lo, hi = s.node_lo[nodes].astype(np.float64), s.node_hi[nodes].astype(np.float64)
+    frac = np.array([data.draw(st.tuples(*[st.sampled_from((0.0, 0.25, 0.5, 1.0))] * 3))
+                     for _ in nodes])
+    origin = lo + frac * (hi - lo)
+    direction = np.array([data.draw(st.tuples(component, component, component))
+                          for _ in nodes])
+    assume(np.isfinite(origin).all())
+    _check(mesh, RayBatch(origin, direction), builder, traversal, 1)
