@@ -16,17 +16,16 @@ stats overhead.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import tempfile
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from rayaccel._atomic import write_bytes_atomic
 from rayaccel.errors import InvalidInputError
 
 Record = dict[str, Any]
@@ -77,32 +76,6 @@ def _finite(value: Any) -> Any:
     return value
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def write_atomic(path: str | os.PathLike[str], data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file, ``fsync`` and :func:`os.replace`."""
-    destination = Path(path)
-    fd, temp_name = tempfile.mkstemp(
-        prefix=f".{destination.name}.", suffix=".tmp", dir=destination.parent
-    )
-    try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600 files; honour the umask
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temp_name, destination)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(temp_name)
-        raise
-    return destination
-
-
 def read_jsonl(path: str | os.PathLike[str]) -> list[Record]:
     """Read every record of a JSONL results file.
 
@@ -149,7 +122,7 @@ class JsonlWriter:
         """Add ``record`` and rewrite the file through a temporary file and ``os.replace``."""
         self._lines.append(dumps(record))
         text = "".join(line + "\n" for line in self._lines)
-        write_atomic(self.path, text.encode("utf-8"))
+        write_bytes_atomic(self.path, text.encode("utf-8"))
 
 
 def _fmt(value: Any, digits: int = 3) -> str:

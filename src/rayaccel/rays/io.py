@@ -23,16 +23,16 @@ leaves any previous file untouched and no temporary file behind.
 
 from __future__ import annotations
 
-import contextlib
+import io
 import json
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from rayaccel._atomic import write_bytes_atomic
 from rayaccel.dtypes import REAL
 from rayaccel.errors import InvalidInputError, SceneFileError
 from rayaccel.rays.batch import RayBatch
@@ -60,20 +60,6 @@ def _encode_metadata(metadata: dict[str, object]) -> str:
         return json.dumps(metadata, default=_json_default, sort_keys=True, allow_nan=True)
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(f"metadata: expected JSON-serialisable values ({exc})") from exc
-
-
-def _fsync_directory(directory: Path) -> None:
-    # Make the rename itself durable; not every platform can open a directory.
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def save_rays(path: str | os.PathLike[str], rays: RayBatch, **metadata: object) -> Path:
@@ -106,28 +92,16 @@ def save_rays(path: str | os.PathLike[str], rays: RayBatch, **metadata: object) 
     if not isinstance(rays, RayBatch):
         raise InvalidInputError(f"rays: expected a RayBatch, got {type(rays).__name__}")
     text = _encode_metadata(metadata)
-    destination = Path(path)
-    directory = destination.parent
-    fd, temp_name = tempfile.mkstemp(prefix=f".{destination.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            np.savez(
-                handle,
-                origin=rays.origin,
-                direction=rays.direction,
-                tmin=rays.tmin,
-                tmax=rays.tmax,
-                metadata=np.array(text),
-            )
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temp_name, destination)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(temp_name)
-        raise
-    _fsync_directory(directory)
-    return destination
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        origin=rays.origin,
+        direction=rays.direction,
+        tmin=rays.tmin,
+        tmax=rays.tmax,
+        metadata=np.array(text),
+    )
+    return write_bytes_atomic(path, buffer.getvalue())
 
 
 def _read_members(path: Path) -> dict[str, np.ndarray]:

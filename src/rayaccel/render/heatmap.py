@@ -25,11 +25,9 @@ titled with the metric). PNG files are written atomically (:func:`write_png`).
 
 from __future__ import annotations
 
-import contextlib
 import io
 import math
 import os
-import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +36,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from rayaccel._atomic import write_bytes_atomic
 from rayaccel.api import Accel
 from rayaccel.counters import COUNTER_NAMES
 from rayaccel.errors import InvalidInputError
@@ -404,28 +403,3 @@ def write_png(path: str | os.PathLike[str], image: npt.ArrayLike) -> Path:
     buffer = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(array)).save(buffer, format="PNG")
     return write_bytes_atomic(path, buffer.getvalue())
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file and :func:`os.replace`."""
-    destination = Path(path)
-    directory = destination.parent if str(destination.parent) else Path(".")
-    fd, temp_name = tempfile.mkstemp(prefix=f".{destination.name}.", suffix=".tmp", dir=directory)
-    try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600 files; honour the umask
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temp_name, destination)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(temp_name)
-        raise
-    return destination
