@@ -121,7 +121,6 @@ class SceneCache:
 
 def _make_ray_set(cache: SceneCache, name: str):
     import reference
-
     from rayaccel.rays.bounce import diffuse_rays, shadow_rays
     from rayaccel.rays.camera import frame_bounds, from_preset
     from rayaccel.scene.catalog import camera_preset

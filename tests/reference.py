@@ -194,7 +194,8 @@ def assert_closest_matches(tri: np.ndarray, rays: RayBatch, ours: HitBatch,
     miss = ~hit
     assert np.all(np.isposinf(ours.t[miss])), f"a miss has finite t{where}"
     assert np.all(ours.prim[miss] == -1), f"a miss has prim != -1{where}"
-    assert np.all(ours.u[miss] == 0) and np.all(ours.v[miss] == 0), f"miss with u/v{where}"
+    assert np.all(ours.u[miss] == 0), f"miss with u/v{where}"
+    assert np.all(ours.v[miss] == 0), f"miss with u/v{where}"
     same = ours.prim == ref.prim
     for name in ("t", "u", "v"):
         x, y = getattr(ours, name)[same], getattr(ref, name)[same]
@@ -238,7 +239,8 @@ def assert_any_matches(tri: np.ndarray, rays: RayBatch, ours: HitBatch,
         f"{bad.size} any-hit answers differ from the oracle's hit mask{where}; first ray "
         f"{bad[0]}: o={rays.origin[bad[0]].tolist()} d={rays.direction[bad[0]].tolist()}"
     )
-    assert np.all(np.isposinf(ours.t[~hit])) and np.all(ours.prim[~hit] == -1)
+    assert np.all(np.isposinf(ours.t[~hit]))
+    assert np.all(ours.prim[~hit] == -1)
     rows = np.flatnonzero(hit)
     again = eval_prims(tri, rays.subset(rows), ours.prim[rows])
     wrong = np.flatnonzero(again.t.view(np.int32) != ours.t[rows].view(np.int32))
@@ -246,15 +248,18 @@ def assert_any_matches(tri: np.ndarray, rays: RayBatch, ours: HitBatch,
         f"ray {rows[wrong[0]]}: any-hit prim {ours.prim[rows[wrong[0]]]} re-tested gives "
         f"t={again.t[wrong[0]]!r}, reported t={ours.t[rows[wrong[0]]]!r}{where}"
     )
-    assert np.all(ours.t[rows] >= rays.tmin[rows]) and np.all(ours.t[rows] <= rays.tmax[rows])
-    assert np.array_equal(again.u, ours.u[rows]) and np.array_equal(again.v, ours.v[rows])
+    assert np.all(ours.t[rows] >= rays.tmin[rows])
+    assert np.all(ours.t[rows] <= rays.tmax[rows])
+    assert np.array_equal(again.u, ours.u[rows])
+    assert np.array_equal(again.v, ours.v[rows])
 
 
 def assert_hits_identical(a: HitBatch, b: HitBatch, label: str = "") -> None:
     """Assert two results are bit-identical (t, prim, u, v)."""
     for name in ("t", "prim", "u", "v"):
         x, y = getattr(a, name), getattr(b, name)
-        assert x.dtype == y.dtype and x.shape == y.shape, f"{name} dtype/shape [{label}]"
+        assert x.dtype == y.dtype, f"{name} dtype/shape [{label}]"
+        assert x.shape == y.shape, f"{name} dtype/shape [{label}]"
         assert x.tobytes() == y.tobytes(), (
             f"{name} differs on {int(np.sum(x != y))} rays [{label}]"
         )
@@ -267,7 +272,8 @@ def check_counter_invariants(rays: RayBatch, hits: HitBatch) -> None:
     assert tuple(stats) == COUNTER_NAMES
     n = rays.n_rays
     for name, column in stats.items():
-        assert column.dtype == np.int32 and column.shape == (n,), name
+        assert column.dtype == np.int32, name
+        assert column.shape == (n,), name
         assert (column >= 0).all(), f"negative {name}"
     hit = hits.prim >= 0
     assert (stats["prim_tests"][hit] >= 1).all(), "a hit with no primitive test"

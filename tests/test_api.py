@@ -6,9 +6,9 @@ import dataclasses
 
 import numpy as np
 import pytest
-import reference
 
 import rayaccel
+import reference
 from rayaccel import api, config, registry
 from rayaccel.counters import COUNTER_NAMES
 from rayaccel.errors import InvalidInputError, StructureInvariantError
@@ -45,9 +45,12 @@ def test_default_build_and_repr(teapot):
 
 def test_intersect_result_types(teapot, rays):
     hits = teapot.intersect(rays.origin, rays.direction)
-    assert isinstance(hits, HitBatch) and len(hits) == rays.n_rays
-    assert hits.t.dtype == np.float32 and hits.prim.dtype == np.int32
-    assert hits.u.dtype == np.float32 and hits.v.dtype == np.float32
+    assert isinstance(hits, HitBatch)
+    assert len(hits) == rays.n_rays
+    assert hits.t.dtype == np.float32
+    assert hits.prim.dtype == np.int32
+    assert hits.u.dtype == np.float32
+    assert hits.v.dtype == np.float32
     assert hits.stats is None
     assert np.array_equal(hits.hit, hits.prim >= 0)
     assert 0 < hits.hit.sum() < rays.n_rays
@@ -62,14 +65,16 @@ def test_barycentrics_and_points(teapot, rays):
     points = hits.points(rays)
     assert np.allclose(points[hit], on_tri, atol=1e-4)
     assert np.isnan(points[~hit]).all()
-    assert (hits.u[hit] >= 0).all() and (hits.v[hit] >= 0).all()
+    assert (hits.u[hit] >= 0).all()
+    assert (hits.v[hit] >= 0).all()
     assert (hits.u[hit] + hits.v[hit] <= 1 + 1e-6).all()
 
 
 def test_occluded_equals_closest_hit_mask(teapot, rays):
     hits = teapot.intersect(rays.origin, rays.direction)
     occluded = teapot.occluded(rays.origin, rays.direction)
-    assert occluded.dtype == np.bool_ and np.array_equal(occluded, hits.hit)
+    assert occluded.dtype == np.bool_
+    assert np.array_equal(occluded, hits.hit)
     # Finite intervals: shadow-ray style queries stop before the closest hit.
     tmax = np.where(hits.hit, hits.t * 0.5, 1.0)
     assert not teapot.occluded(rays.origin, rays.direction, 0.0, tmax)[hits.hit].any()
@@ -98,13 +103,18 @@ def test_single_triangle_counters():
     hits = accel.intersect([[0.2, 0.2, 1.0], [5, 5, 1]], (0, 0, -1), stats=True)
     assert list(hits.prim) == [0, -1]
     s = hits.stats
-    assert s["nodes"][0] == 1 and s["prim_tests"][0] == 1 and s["box_tests"][0] == 1
-    assert s["nodes"][1] == 0 and s["prim_tests"][1] == 0 and s["box_tests"][1] == 1
+    assert s["nodes"][0] == 1
+    assert s["prim_tests"][0] == 1
+    assert s["box_tests"][0] == 1
+    assert s["nodes"][1] == 0
+    assert s["prim_tests"][1] == 0
+    assert s["box_tests"][1] == 1
 
 
 def test_empty_ray_batch(teapot):
     hits = teapot.intersect(np.zeros((0, 3)), np.zeros((0, 3)))
-    assert len(hits) == 0 and hits.t.dtype == np.float32
+    assert len(hits) == 0
+    assert hits.t.dtype == np.float32
     assert teapot.occluded(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
 
 
@@ -113,7 +123,8 @@ def test_empty_ray_batch(teapot):
                    strict=True)
 def test_empty_ray_batch_with_stats(teapot):
     hits = teapot.intersect(np.zeros((0, 3)), np.zeros((0, 3)), stats=True)
-    assert hits.stats is not None and tuple(hits.stats) == COUNTER_NAMES
+    assert hits.stats is not None
+    assert tuple(hits.stats) == COUNTER_NAMES
 
 
 def test_per_ray_intervals(teapot, rays):
@@ -133,7 +144,8 @@ def test_info(teapot):
         assert key in info, key
     assert info["n_prims"] == teapot.mesh.n_triangles == info["n_refs"]
     assert info["options"]["max_leaf_size"] == 8
-    assert info["sah"] > 0 and info["depth"] == teapot.structure.depth()
+    assert info["sah"] > 0
+    assert info["depth"] == teapot.structure.depth()
 
 
 def test_derived_layout_is_cached_and_counted():
@@ -152,7 +164,8 @@ def test_derived_layout_is_cached_and_counted():
 def test_builder_options_round_trip():
     mesh = rayaccel.scenes.get("teapot")
     accel = rayaccel.build(mesh, "bvh2.binned_sah", max_leaf_size=2, n_bins=8)
-    assert accel.options.max_leaf_size == 2 and accel.options.n_bins == 8
+    assert accel.options.max_leaf_size == 2
+    assert accel.options.n_bins == 8
     assert accel.structure.node_count.max() <= 2
     assert accel.info()["options"]["n_bins"] == 8
 
@@ -182,8 +195,10 @@ def test_registry_enumeration():
     assert builders == sorted(builders)
     for v in registry.variants():
         assert v.key.startswith(v.structure + ".")
-        assert v.role in ("builder", "traversal") and v.backend in ("cpu", "cuda")
-        assert v.summary and callable(v.func)
+        assert v.role in ("builder", "traversal")
+        assert v.backend in ("cpu", "cuda")
+        assert v.summary
+        assert callable(v.func)
         assert dataclasses.is_dataclass(v.options)
         v.make_options()  # defaults are valid
         assert registry.get(v.key) is v
@@ -220,7 +235,8 @@ def test_ray_batch_helpers(rays):
     assert rays.subset(mask).n_rays == 2
     assert rays.valid().all()
     empty = HitBatch.empty(4)
-    assert (empty.prim == -1).all() and np.isposinf(empty.t).all()
+    assert (empty.prim == -1).all()
+    assert np.isposinf(empty.t).all()
 
 
 def test_query_kinds_constant():

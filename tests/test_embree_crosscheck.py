@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import reference
 
+import reference
 from rayaccel import registry
 from rayaccel.rays.bounce import diffuse_rays
 from rayaccel.rays.camera import frame_bounds

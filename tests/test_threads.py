@@ -14,9 +14,9 @@ import textwrap
 import numba
 import numpy as np
 import pytest
-import reference
 
 import rayaccel
+import reference
 from rayaccel import registry
 from rayaccel.rays.batch import RayBatch
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import reference
 
+import reference
 from rayaccel.kernels.brute_force import brute_force_trace
 from rayaccel.kernels.triangle import ray_triangle_py, ray_triangle_setup_py
 from rayaccel.rays.batch import RayBatch
@@ -46,7 +46,8 @@ def test_setup_picks_dominant_axis_and_keeps_winding():
         assert k == kz
         assert {kx, ky, kz} == {0, 1, 2}
         assert Sz == f32(1) / f32(d[kz])
-        assert Sx == f32(d[kx]) / f32(d[kz]) and Sy == f32(d[ky]) / f32(d[kz])
+        assert Sx == f32(d[kx]) / f32(d[kz])
+        assert Sy == f32(d[ky]) / f32(d[kz])
         if d[kz] < 0:  # swapped to preserve the winding
             assert (kx, ky) == ((kz + 2) % 3, (kz + 1) % 3)
         else:
@@ -59,7 +60,8 @@ def test_setup_picks_dominant_axis_and_keeps_winding():
 def test_centre_hit_distance_and_barycentrics():
     t, u, v = hit_py(TRI, (0.25, 0.25, 2.0), (0, 0, -1))
     assert t == f32(2.0)
-    assert np.isclose(u, 0.25) and np.isclose(v, 0.25)
+    assert np.isclose(u, 0.25)
+    assert np.isclose(v, 0.25)
     # Hit point (1-u-v) A + u B + v C.
     p = (1 - u - v) * np.array(TRI[0]) + u * np.array(TRI[1]) + v * np.array(TRI[2])
     assert np.allclose(p, (0.25, 0.25, 0.0))
@@ -75,14 +77,17 @@ def test_back_face_is_hit_no_culling():
     front = hit_py(TRI, (0.2, 0.2, 1.0), (0, 0, -1))
     back = hit_py(TRI, (0.2, 0.2, -1.0), (0, 0, 1))
     assert front[0] == back[0] == f32(1.0)
-    assert np.isclose(front[1], back[1]) and np.isclose(front[2], back[2])
+    assert np.isclose(front[1], back[1])
+    assert np.isclose(front[2], back[2])
 
 
 def test_negative_dominant_axis_gives_same_barycentrics():
     a = hit_py(TRI, (0.1, 0.6, 1.0), (0.05, -0.1, -1))
     b = hit_py(TRI, (0.1, 0.6, -1.0), (0.05, -0.1, 1))
-    assert np.isfinite(a[0]) and np.isfinite(b[0])
-    assert np.isclose(a[1], b[1], atol=1e-6) and np.isclose(a[2], b[2], atol=1e-6)
+    assert np.isfinite(a[0])
+    assert np.isfinite(b[0])
+    assert np.isclose(a[1], b[1], atol=1e-6)
+    assert np.isclose(a[2], b[2], atol=1e-6)
 
 
 @pytest.mark.parametrize("o", [(1.2, 0.2, 1.0), (-0.01, 0.5, 1.0), (0.6, 0.6, 1.0)])
@@ -146,7 +151,7 @@ def test_matches_float64_reference_away_from_edges():
     for r in range(rays.n_rays):
         one = RayBatch(rays.origin[r:r + 1], rays.direction[r:r + 1])
         t64, p64, margin = reference.mt_float64(tri[r:r + 1], one)
-        t, u, v = hit_py(tri[r], rays.origin[r], rays.direction[r])
+        t, _, _ = hit_py(tri[r], rays.origin[r], rays.direction[r])
         if abs(margin[0]) < 1e-4 and np.isfinite(margin[0]):
             continue  # too close to an edge for float32 to agree with float64
         assert np.isfinite(t) == (p64[0] == 0)
@@ -159,7 +164,7 @@ def test_python_and_jitted_forms_agree_on_random_rays():
     tri = rng.normal(size=(64, 9)).astype(np.float32)
     rays = RayBatch(rng.normal(size=(64, 3)) * 3, rng.normal(size=(64, 3)))
     ref = reference.python_trace(tri, rays)
-    t, prim, u, v = brute_force_trace(tri, rays.origin, rays.direction, rays.tmin, rays.tmax)
+    t, prim, _, _ = brute_force_trace(tri, rays.origin, rays.direction, rays.tmin, rays.tmax)
     assert np.array_equal(prim, ref.prim)
     assert np.allclose(t, ref.t, rtol=1e-6)
 
@@ -180,7 +185,8 @@ CRACK_D = [0.7475624084472656, -0.040543146431446075, -0.6592745184898376]
 def test_shared_edge_python_form_is_watertight():
     mesh = TriangleMesh(CRACK_VERTICES, CRACK_FACES)
     ref = reference.python_trace(reference.tri9(mesh), RayBatch([CRACK_O], [CRACK_D]))
-    assert ref.prim[0] >= 0 and np.isclose(ref.t[0], 1.0)
+    assert ref.prim[0] >= 0
+    assert np.isclose(ref.t[0], 1.0)
 
 
 @pytest.mark.xfail(reference.CONTRACT_BUG, reason=reference.CONTRACT_REASON, strict=True)
@@ -188,7 +194,8 @@ def test_shared_edge_jitted_form_is_watertight():
     """Repro of the FMA crack: the jitted test rejects the ray from both triangles."""
     mesh = TriangleMesh(CRACK_VERTICES, CRACK_FACES)
     t, prim, _, _ = hit_jit(reference.tri9(mesh), CRACK_O, CRACK_D)
-    assert prim >= 0 and np.isclose(t, 1.0)
+    assert prim >= 0
+    assert np.isclose(t, 1.0)
 
 
 @pytest.mark.xfail(reference.CONTRACT_BUG, reason=reference.CONTRACT_REASON, strict=True)
