@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rayaccel._jit import FASTMATH, cpu_kernel
+from rayaccel._jit import cpu_kernel
 from rayaccel.counters import COUNTER_NAMES
 from rayaccel.kernels.brute_force import QUERY_ANY, QUERY_CLOSEST, brute_force_trace
 from rayaccel.kernels.triangle import (
@@ -30,23 +30,12 @@ from rayaccel.scene.mesh import TriangleMesh
 
 QUERIES = {"closest": QUERY_CLOSEST, "any": QUERY_ANY}
 
-#: Known library bug: ``_jit.FASTMATH`` contains ``"contract"``, which lets LLVM fuse the
-#: edge functions ``Cx*By - Cy*Bx`` into FMAs. The fused form is not antisymmetric, so
-#: the two triangles sharing an edge can both reject a ray through it (cracks), a
-#: zero-area triangle can be "hit", and two kernels inlining the same test can
-#: disagree. Tests that depend on it are marked ``xfail`` while the flag is present.
-CONTRACT_BUG = "contract" in FASTMATH
-CONTRACT_REASON = (
-    "library bug: fastmath 'contract' (FMA) in rayaccel._jit.FASTMATH breaks the "
-    "watertight triangle test (see tests/kernels/test_triangle.py repros)"
-)
-
 # --------------------------------------------------------------------------------- oracles
 
 
 def tri9(mesh: TriangleMesh) -> np.ndarray:
     """Return the ``(F, 9)`` float32 corner rows the oracle takes."""
-    return np.ascontiguousarray(mesh.triangles().reshape(-1, 9))
+    return mesh.hit_rows()
 
 
 def oracle(mesh: TriangleMesh, rays: RayBatch, query: str = "closest") -> HitBatch:

@@ -118,9 +118,6 @@ def test_empty_ray_batch(teapot):
     assert teapot.occluded(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
 
 
-@pytest.mark.xfail(reason="gap: trace(stats=True) on 0 rays returns stats=None, not a dict "
-                   "of empty counter columns (api.Accel.trace returns HitBatch.empty(0))",
-                   strict=True)
 def test_empty_ray_batch_with_stats(teapot):
     hits = teapot.intersect(np.zeros((0, 3)), np.zeros((0, 3)), stats=True)
     assert hits.stats is not None

@@ -95,14 +95,6 @@ def _hit_rows(scenes_cache, builder, scene):
     return accel, rays.subset(rows), ref.t[rows]
 
 
-INTERVAL_BUG = (
-    "library bug: the slab test is not conservative with respect to the triangle test: a "
-    "flat box's rounded entry/exit can lie a few ulps beyond/before the t the triangle "
-    "test computes, and bvh2.stack pops with a strict `stack_t < t_hit`, so hits exactly "
-    "at tmax (often) or exactly at tmin (rarely) are lost"
-)
-
-
 @pytest.mark.parametrize("scene", SCENES)
 @pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
 def test_interval_excludes_hits_just_outside(scenes_cache, builder, traversal, scene):
@@ -116,7 +108,6 @@ def test_interval_excludes_hits_just_outside(scenes_cache, builder, traversal, s
     assert np.all(hits.t[hits.hit] <= below[hits.hit])
 
 
-@pytest.mark.xfail(reason=INTERVAL_BUG, strict=False)
 @pytest.mark.parametrize("scene", SCENES)
 @pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
 def test_interval_tmin_inclusive(scenes_cache, builder, traversal, scene):
@@ -127,7 +118,6 @@ def test_interval_tmin_inclusive(scenes_cache, builder, traversal, scene):
     assert missed.size == 0, f"{missed.size}/{t.size} hits lost with tmin = t"
 
 
-@pytest.mark.xfail(reason=INTERVAL_BUG, strict=False)
 @pytest.mark.parametrize("scene", SCENES)
 @pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
 def test_interval_tmax_inclusive(scenes_cache, builder, traversal, scene):
@@ -141,7 +131,6 @@ def test_interval_tmax_inclusive(scenes_cache, builder, traversal, scene):
     assert accel.occluded(o, d, t, t, traversal=traversal).all()
 
 
-@pytest.mark.xfail(reason=INTERVAL_BUG, strict=True)
 @pytest.mark.parametrize("traversal", registry.keys("traversal", "bvh2"))
 def test_tmax_inclusive_single_triangle(traversal):
     """Minimal repro: half of the Cornell box's back wall (flat box), tmax = t."""
@@ -163,9 +152,6 @@ def test_tmax_inclusive_single_triangle(traversal):
 
 @pytest.mark.slow
 @pytest.mark.scenes
-@pytest.mark.xfail(reference.CONTRACT_BUG, strict=False,
-                   reason=reference.CONTRACT_REASON + "; the oracle itself 'hits' a kitchen "
-                   "sliver (prim 219600) 2.4 units away from the ray")
 @pytest.mark.parametrize("scene", ["stanford-bunny", "sponza_dabrovic", "kitchen"])
 @pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
 def test_matches_oracle_more_rays(scenes_cache, full, builder, traversal, scene):

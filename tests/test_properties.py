@@ -14,19 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import Phase, assume, given, settings
+from hypothesis import assume, given
 from hypothesis import strategies as st
 
 import rayaccel
 import reference
 from rayaccel import registry
 from rayaccel.rays.batch import RayBatch
-
-#: While the FMA bug is present, property tests run without shrinking and may xfail.
-contract_xfail = pytest.mark.xfail(reference.CONTRACT_BUG, reason=reference.CONTRACT_REASON,
-                                   strict=False)
-no_shrink = settings(phases=[Phase.explicit, Phase.reuse, Phase.generate]) \
-    if reference.CONTRACT_BUG else (lambda f: f)
 
 PAIRS = [
     pytest.param(b.key, t, id=f"{b.key}-{t}")
@@ -124,9 +118,7 @@ def _check(mesh: rayaccel.TriangleMesh, rays: RayBatch, builder: str, traversal:
     reference.check_counter_invariants(rays, counted)
 
 
-@contract_xfail
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
-@no_shrink
 @given(data=st.data(), leaf=st.sampled_from((1, 2, 8)))
 def test_random_meshes_match_oracle(builder, traversal, data, leaf):
     mesh = data.draw(meshes())
@@ -134,9 +126,7 @@ def test_random_meshes_match_oracle(builder, traversal, data, leaf):
     _check(mesh, rays, builder, traversal, leaf)
 
 
-@contract_xfail
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
-@no_shrink
 @given(data=st.data())
 def test_single_triangle(builder, traversal, data):
     mesh = data.draw(meshes(max_triangles=1))
@@ -175,9 +165,7 @@ def _clear_of_boundaries(tri: np.ndarray, rays: RayBatch) -> np.ndarray:
     return clear | ~rays.valid()
 
 
-@contract_xfail
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
-@no_shrink
 @given(
     data=st.data(),
     axis=st.integers(0, 2),
@@ -201,9 +189,7 @@ def test_axis_parallel_rays(builder, traversal, data, axis, sign, zeros):
     _check(mesh, rays, builder, traversal, data.draw(st.sampled_from((1, 4))))
 
 
-@contract_xfail
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
-@no_shrink
 @given(data=st.data())
 def test_origins_inside_node_boxes(builder, traversal, data):
     """Rays starting inside (and on the faces of) the BVH's own node boxes."""

@@ -71,11 +71,6 @@ def _check_all_hit(accel, rays: RayBatch, traversal: str, label: str) -> None:
     reference.assert_closest_matches(reference.tri9(accel.mesh), rays, closest, ref, label)
 
 
-contract_xfail = pytest.mark.xfail(reference.CONTRACT_BUG, reason=reference.CONTRACT_REASON,
-                                   strict=False)
-
-
-@contract_xfail
 @pytest.mark.parametrize("name", list(MESHES))
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
 def test_rays_from_outside_through_vertices_and_edges(accels, builder, traversal, name):
@@ -95,7 +90,6 @@ def test_rays_from_outside_through_vertices_and_edges(accels, builder, traversal
     assert np.allclose(hits.t, 1.0, atol=1e-4)
 
 
-@contract_xfail
 @pytest.mark.parametrize("name", list(MESHES))
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
 def test_rays_from_centre_never_miss(accels, builder, traversal, name):

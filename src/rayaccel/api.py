@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from rayaccel import config, registry
+from rayaccel.counters import counters_to_dict, empty_counters
 from rayaccel.dtypes import BoolArray
 from rayaccel.errors import InvalidInputError
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -106,8 +107,19 @@ class Accel:
                 f"{self.structure_name!r} (built by {self.key!r})"
             )
         opts = variant.make_options(options)
+        if query not in ("closest", "any"):
+            raise InvalidInputError(f"query: expected 'closest' or 'any', got {query!r}")
         if rays.n_rays == 0:
-            return HitBatch.empty(0)
+            empty = HitBatch.empty(0)
+            if stats:
+                return HitBatch(
+                    empty.t,
+                    empty.prim,
+                    empty.u,
+                    empty.v,
+                    stats=counters_to_dict(empty_counters(0, True)),
+                )
+            return empty
         with self._lock:
             cache = self._cache
         return variant.func(  # type: ignore[no-any-return]

@@ -296,8 +296,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     paths = _output_paths(Path(args.output), [name for name, _ in images])
     if args.view == "heatmap":
         scale = hm.HeatScale.fit(
-            [values for _, values in images], args.metric, vmin=args.scale_min,
-            vmax=args.scale_max, log=not args.linear,
+            [values for _, values in images],
+            args.metric,
+            vmin=args.scale_min,
+            vmax=args.scale_max,
+            log=not args.linear,
         )
         for (name, values), path in zip(images, paths, strict=True):
             hm.write_png(path, hm.heatmap_image(values, scale))
@@ -409,7 +412,8 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                         help="show the traceback of errors")  # fmt: skip
     parser = argparse.ArgumentParser(
-        prog="rayaccel", parents=[common],
+        prog="rayaccel",
+        parents=[common],
         description="Build, traverse, measure and compare ray tracing acceleration structures.",
     )
     parser.add_argument("--version", action="version", version=f"rayaccel {_version()}")
@@ -439,11 +443,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--accel", nargs="+", metavar="KEY",
                    help=f"{accel_help}; several (or 'all') write one image each, "
                         "heatmaps on one shared scale")  # fmt: skip
-    p.add_argument("--traversal", nargs="+", metavar="KEY",
-                   help=f"traversal key ({traversals}); default the structure's stack traversal")
+    p.add_argument(
+        "--traversal",
+        nargs="+",
+        metavar="KEY",
+        help=f"traversal key ({traversals}); default the structure's stack traversal",
+    )
     p.add_argument("--view", choices=("shade", "heatmap"), default="shade")
-    p.add_argument("--metric", default="nodes",
-                   help=f"heatmap counter ({', '.join(COUNTER_NAMES)}); default nodes")
+    p.add_argument(
+        "--metric",
+        default="nodes",
+        help=f"heatmap counter ({', '.join(COUNTER_NAMES)}); default nodes",
+    )
     p.add_argument("--query", choices=("closest", "any"), default="closest",
                    help="heatmap query kind")  # fmt: skip
     p.add_argument("-o", "--output", required=True, help="output PNG")
@@ -453,8 +464,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--linear", action="store_true", help="linear instead of log heatmap scale")
     p.add_argument("--width", type=_positive_int, default=512)
     p.add_argument("--height", type=_positive_int, default=512)
-    p.add_argument("--ao", type=_nonnegative_int, default=0,
-                   help="ambient occlusion rays per pixel for --view shade (0: off)")
+    p.add_argument(
+        "--ao",
+        type=_nonnegative_int,
+        default=0,
+        help="ambient occlusion rays per pixel for --view shade (0: off)",
+    )
     p.add_argument("--ao-radius", type=float, help="ambient occlusion distance")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--option", action="append", metavar="K=V", help=option_help)
@@ -467,21 +482,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenes", nargs="+", metavar="SCENE", help=scene_help)
     p.add_argument("--accel", nargs="+", metavar="KEY",
                    help=f"{accel_help} or 'all' (default)")  # fmt: skip
-    p.add_argument("--traversal", nargs="+", metavar="KEY",
-                   help=f"traversal keys ({traversals}); default every traversal of the structure")
+    p.add_argument(
+        "--traversal",
+        nargs="+",
+        metavar="KEY",
+        help=f"traversal keys ({traversals}); default every traversal of the structure",
+    )
     p.add_argument("--rays", default="primary,diffuse,shadow",
                    help="ray sets: primary,diffuse,shadow (default all)")  # fmt: skip
     p.add_argument("--threads", type=_threads,
                    help="thread counts, e.g. 1 or 1,2 (default all cores)")  # fmt: skip
-    p.add_argument("--peers", default="all",
-                   help="peer ray tracers on the same rays: embree,open3d,trimesh, all or none")
+    p.add_argument(
+        "--peers",
+        default="all",
+        help="peer ray tracers on the same rays: embree,open3d,trimesh, all or none",
+    )
     p.add_argument("--repeats", type=_positive_int, default=5, help="timed passes (default 5)")
     p.add_argument("--build-repeats", type=_positive_int, default=3,
                    help="timed builds (default 3)")  # fmt: skip
     p.add_argument("--width", type=_positive_int, default=512)
     p.add_argument("--height", type=_positive_int, default=512)
-    p.add_argument("--validate", type=_nonnegative_int, default=200,
-                   help="rays checked against the oracle per system and ray set (0: off)")
+    p.add_argument(
+        "--validate",
+        type=_nonnegative_int,
+        default=200,
+        help="rays checked against the oracle per system and ray set (0: off)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", metavar="PATH", help="append JSONL records here (atomically)")
     p.add_argument("--markdown", action="store_true", help="print the table as markdown")

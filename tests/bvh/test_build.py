@@ -297,7 +297,7 @@ def test_chain_helper_is_a_valid_tree_when_shallow():
 def test_packed_layout_matches_canonical(builder):
     mesh = MESHES["icosphere2"]()
     bvh = rayaccel.build(mesh, builder, max_leaf_size=2).structure
-    packed = pack_bvh2(bvh, mesh.triangles())
+    packed = pack_bvh2(bvh, mesh.hit_rows())
     arrays = packed.arrays()
     n_inner = bvh.n_nodes - bvh.n_leaves
     assert arrays.inner_box.shape[0] == n_inner

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rayaccel.kernels.aabb import ray_box_entry, ray_box_entry_py
+from rayaccel.kernels.aabb import culling_pad_py, ray_box_entry, ray_box_entry_py
 from rayaccel.kernels.triangle import ray_triangle_py, ray_triangle_setup_py
 
 f32 = np.float32
@@ -133,15 +133,12 @@ def test_jitted_form_matches_python_form():
             assert np.isclose(a, b, rtol=1e-6, atol=0)
 
 
-INTERVAL_REASON = (
-    "library bug: the slab entry (exit) of a flat box can round above (below) the t of a "
-    "triangle lying in that box face, so with tmax == t or tmin == t the box is culled"
-)
-
-
-@pytest.mark.xfail(reason=INTERVAL_REASON, strict=True)
 def test_box_never_culls_its_triangle_hit_at_interval_ends():
-    """A ray hitting a triangle at t enters the triangle's box with tmax = t or tmin = t."""
+    """A ray hitting a triangle at t enters the triangle's box with tmax = t or tmin = t.
+
+    The triangle lies in a box face, so the slab distances and the triangle's t are
+    rounded along different paths; traversals cull against the widened interval.
+    """
     rng = np.random.default_rng(0)
     lost_tmax = lost_tmin = 0
     for _ in range(3000):
@@ -156,7 +153,8 @@ def test_box_never_culls_its_triangle_hit_at_interval_ends():
             continue
         lo, hi = tri.min(axis=0), tri.max(axis=0)
         upper = np.nextafter(t, INF)  # how traversals make tmax inclusive
-        lost_tmax += entry(lo, hi, o, d, 0.0, upper) == INF
-        lost_tmin += entry(lo, hi, o, d, t, np.inf) == INF
+        pad = culling_pad_py(o[kz], Sz, lo[kz], hi[kz])
+        lost_tmax += entry(lo, hi, o, d, 0.0, upper + pad) == INF
+        lost_tmin += entry(lo, hi, o, d, t - pad, np.inf) == INF
     assert lost_tmax == 0, f"{lost_tmax} triangle hits at tmax culled by their own box"
     assert lost_tmin == 0, f"{lost_tmin} triangle hits at tmin culled by their own box"

@@ -201,12 +201,20 @@ def git_sha() -> str | None:
     root = Path(__file__).resolve().parents[3]
     try:
         sha = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=5,
+            ["git", "rev-parse", "HEAD"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=5,
             check=True,
         ).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-            capture_output=True, text=True, timeout=5, check=True,
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=True,
         ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return None
@@ -342,7 +350,7 @@ def reference_hits(
             return _Reference(index, rays, np.zeros(k), np.where(occluded, 0, -1), source)
         t, prim = embree.intersect(rays)
         return _Reference(index, rays, t, prim, source)
-    tri = np.ascontiguousarray(mesh.triangles().reshape(-1, 9))
+    tri = mesh.hit_rows()
     t, prim, _, _ = brute_force_trace(tri, rays.origin, rays.direction, rays.tmin, rays.tmax, query)
     return _Reference(index, rays, t, prim, source)
 
@@ -489,7 +497,12 @@ class _Run:
         return value, max(first - steady, 0.0) * 1e3, "jit" if compiled else "cache"
 
     def emit_compile(
-        self, builder: str, traversal: str | None, variant: str, ms: float, status: str,
+        self,
+        builder: str,
+        traversal: str | None,
+        variant: str,
+        ms: float,
+        status: str,
         mesh: TriangleMesh,
     ) -> None:
         self.emit({
@@ -517,9 +530,7 @@ class _Run:
                 self.note(f"{peer.name} not measured: {reason}")
         builders = config.builder_keys()
         n_systems = len(usable) + sum(len(config.traversal_keys(b)) for b in builders)
-        total = len(config.scenes) * len(config.thread_counts()) * n_systems * len(
-            config.ray_kinds
-        )
+        total = len(config.scenes) * len(config.thread_counts()) * n_systems * len(config.ray_kinds)
         self.ui = _Progress(self.show_progress, total)
         initial_threads = numba.get_num_threads()
         try:
@@ -597,11 +608,14 @@ class _Run:
             rays = peer.limit(rayset.rays)
             prepared = peer.prepare(rays)
             if rayset.query == "any":
+
                 def query(p: Any = prepared) -> Any:
                     return peer.occluded(p)
             else:
+
                 def query(p: Any = prepared) -> Any:
                     return peer.intersect(p)
+
             ref = references.get(kind)
             mismatches = None
             if ref is not None:

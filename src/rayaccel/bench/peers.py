@@ -309,7 +309,11 @@ class TrimeshPeer(Peer):
             origin, direction = rays.origin[begin:end], rays.direction[begin:end]
             # Zero normals of degenerate triangles make their plane test fail: never hit
             tri, ray, location = ray_triangle_id(
-                triangles, origin, direction, triangles_normal=self._normals, tree=tree,
+                triangles,
+                origin,
+                direction,
+                triangles_normal=self._normals,
+                tree=tree,
                 multiple_hits=True,
             )
             if len(tri) == 0:

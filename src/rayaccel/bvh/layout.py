@@ -367,14 +367,14 @@ def _pack_kernel(bvh, rows, ref_of_node, leaf_first, leaf_count):
         ints[row, 15] = 0
 
 
-def pack_bvh2(bvh: Bvh2, triangles: FloatArray) -> PackedBvh2:
+def pack_bvh2(bvh: Bvh2, hit_rows: FloatArray) -> PackedBvh2:
     """Derive the packed traversal layout from a canonical BVH.
 
     Parameters
     ----------
     bvh : Bvh2
-    triangles : (F, 3, 3) float32
-        Triangle corners of the mesh the tree was built over.
+    hit_rows : (F, 9) float32
+        ``TriangleMesh.hit_rows()`` of the mesh the tree was built over.
     """
     n = bvh.n_nodes
     n_leaves = bvh.n_leaves
@@ -384,7 +384,7 @@ def pack_bvh2(bvh: Bvh2, triangles: FloatArray) -> PackedBvh2:
     leaf_first = np.empty(n_leaves, dtype=INDEX)
     leaf_count = np.empty(n_leaves, dtype=INDEX)
     _pack_kernel(bvh.arrays(), rows, ref_of_node, leaf_first, leaf_count)
-    tri = np.ascontiguousarray(triangles[bvh.prim_index].reshape(-1, 9), dtype=REAL)
+    tri = np.ascontiguousarray(hit_rows[bvh.prim_index], dtype=REAL)
     root_box = np.empty(6, dtype=REAL)
     root_box[0::2] = bvh.node_lo[0]
     root_box[1::2] = bvh.node_hi[0]

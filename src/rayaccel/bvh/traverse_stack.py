@@ -46,7 +46,7 @@ from rayaccel.bvh.layout import (
 from rayaccel.config import parallel_section
 from rayaccel.counters import Counter, counters_to_dict, empty_counters
 from rayaccel.errors import InvalidInputError, TraversalOverflowError
-from rayaccel.kernels.aabb import ray_box_entry
+from rayaccel.kernels.aabb import culling_pad, ray_box_entry
 from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
@@ -135,9 +135,13 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                     okz = origin[r, kz]
                     best_u = ZERO32
                     best_v = ZERO32
+                    # Boxes are culled against a slightly widened interval (aabb.py).
+                    rb = bvh.root_box
+                    pad = culling_pad(okz, Sz, rb[2 * kz], rb[2 * kz + 1])
+                    box_lo = t_lo - pad
+                    box_hi = t_hit + pad
                     sp = 0
                     # The root box is tested once up front.
-                    rb = bvh.root_box
                     entry = ray_box_entry(
                         ox,
                         oy,
@@ -151,8 +155,8 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                         rb[fx],
                         rb[fy],
                         rb[fz],
-                        t_lo,
-                        t_hit,
+                        box_lo,
+                        box_hi,
                     )
                     if with_stats:
                         n_box += 1
@@ -184,8 +188,8 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                 box[node, fx],
                                 box[node, fy],
                                 box[node, fz],
-                                t_lo,
-                                t_hit,
+                                box_lo,
+                                box_hi,
                             )
                             t1 = ray_box_entry(
                                 ox,
@@ -200,8 +204,8 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                 box[node, 6 + fx],
                                 box[node, 6 + fy],
                                 box[node, 6 + fz],
-                                t_lo,
-                                t_hit,
+                                box_lo,
+                                box_hi,
                             )
                             if with_stats:
                                 n_box += 2
@@ -242,6 +246,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                     n_prim += 1
                                 if t < t_hit:
                                     t_hit = t
+                                    box_hi = t + pad
                                     best_prim = bvh.tri_prim[i]
                                     best_u = u
                                     best_v = v
@@ -255,7 +260,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                             sp -= 1
                             if with_stats:
                                 n_bytes += STACK_ENTRY_BYTES
-                            if stack_t[sp] < t_hit:
+                            if stack_t[sp] <= box_hi:
                                 node = stack_ref[sp]
                                 done = False
                                 break
@@ -284,7 +289,7 @@ def packed_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) -
     """Return the packed layout of ``bvh``, memoised in ``cache`` when given."""
     if cache is not None and "bvh2.packed" in cache:
         return cache["bvh2.packed"]  # type: ignore[no-any-return]
-    packed = pack_bvh2(bvh, mesh.triangles())
+    packed = pack_bvh2(bvh, mesh.hit_rows())
     if cache is not None:
         cache["bvh2.packed"] = packed
     return packed

@@ -13,6 +13,17 @@ node. A ray lying exactly in a slab plane with a zero direction component gives
 ``0 * inf = NaN``; the comparisons below treat NaN as "no constraint", so such a
 ray is kept (conservative).
 
+Boxes versus the triangle test: the watertight test computes a hit's ``t`` along
+another path than the slab distances, and its rounding error grows with the
+distance of the triangle's corners from the ray origin (a huge ground triangle hit
+at a grazing angle is off by hundreds of ulps of ``t``). A traversal that culls
+boxes against the exact ray interval then loses hits at exactly ``tmin`` or
+``tmax``. Traversals therefore cull against the interval widened by
+:func:`culling_pad_py`, an absolute slack proportional to the extent of the scene
+along the ray's dominant axis, computed once per ray. The exact interval is still
+enforced by the triangle test, so results are unchanged; only nodes within the
+slack beyond the closest hit are visited more.
+
 ``ray_box_entry_py`` returns the entry distance, or ``inf`` when the box is
 missed within ``[tmin, tmax]``. It is written in plain Python so the same source
 compiles for the CPU (``ray_box_entry``) and, later, for CUDA.
@@ -27,6 +38,24 @@ from rayaccel._jit import cpu_inline
 #: Exit distances grow by this relative amount (2 ulp in float32, 1 + 2^-22), Ize 2013 §3.
 TWO_ULP = np.float32(2.0**-22)
 INF = np.float32(np.inf)
+#: Culling slack in units of the scene's extent along the ray (16 float32 ulps). The
+#: triangle test's error is a few ulps of its corners' distance from the origin.
+INTERVAL_SLACK = np.float32(2.0**-20)
+
+
+def culling_pad_py(o_kz, Sz, lo_kz, hi_kz):
+    """Return the absolute slack added to both ends of the culling interval.
+
+    Parameters
+    ----------
+    o_kz : float32
+        Ray origin on the dominant axis of the direction (``kz`` of the triangle setup).
+    Sz : float32
+        ``1 / d[kz]`` from the triangle setup.
+    lo_kz, hi_kz : float32
+        The root box on that axis.
+    """
+    return max(abs(lo_kz - o_kz), abs(hi_kz - o_kz)) * abs(Sz) * INTERVAL_SLACK
 
 
 def ray_box_entry_py(
@@ -82,3 +111,4 @@ def ray_box_entry_py(
 
 
 ray_box_entry = cpu_inline(ray_box_entry_py)
+culling_pad = cpu_inline(culling_pad_py)

@@ -394,8 +394,10 @@ def write_png(path: str | os.PathLike[str], image: npt.ArrayLike) -> Path:
     from PIL import Image
 
     array = np.asarray(image)
-    if array.dtype != np.uint8 or array.ndim not in (2, 3) or (
-        array.ndim == 3 and array.shape[2] not in (3, 4)
+    if (
+        array.dtype != np.uint8
+        or array.ndim not in (2, 3)
+        or (array.ndim == 3 and array.shape[2] not in (3, 4))
     ):
         raise InvalidInputError(
             f"image: expected (h, w), (h, w, 3) or (h, w, 4) uint8, got {array.dtype} {array.shape}"

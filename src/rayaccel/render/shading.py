@@ -82,7 +82,12 @@ def ambient_visibility(
         1 where nothing occludes (and for rays that missed), down to 0.
     """
     ao_rays, source = ambient_occlusion_rays(
-        rays, hits, normals, n_per_hit=samples, radius=radius, seed=seed  # type: ignore[arg-type]
+        rays,
+        hits,
+        normals,
+        n_per_hit=samples,
+        radius=radius,
+        seed=seed,  # type: ignore[arg-type]
     )
     n = len(hits)  # type: ignore[arg-type]
     visibility = np.ones(n, dtype=np.float64)
@@ -149,8 +154,14 @@ def shade(
     light = AMBIENT + (1.0 - AMBIENT) * cosine
     if ao_samples > 0:
         light = light * ambient_visibility(
-            accel, rays, hits, normals, samples=int(ao_samples), radius=ao_radius,
-            traversal=traversal, seed=seed,
+            accel,
+            rays,
+            hits,
+            normals,
+            samples=int(ao_samples),
+            radius=ao_radius,
+            traversal=traversal,
+            seed=seed,
         )
     colour = albedo * light[:, None]
     colour[~hit] = BACKGROUND

@@ -110,6 +110,25 @@ class TriangleMesh:
         """Return the ``(F, 3, 3)`` float32 corner positions of every triangle."""
         return np.ascontiguousarray(self.vertices[self.faces])
 
+    def hit_rows(self) -> FloatArray:
+        """Return the ``(F, 9)`` float32 corner rows the intersection kernels test.
+
+        A triangle whose area is exactly zero in float64 (repeated corners, collinear
+        corners) is collapsed to its first corner. The watertight test then computes
+        three edge functions that are exactly zero and rejects it, whereas the sheared
+        corners of a collinear triangle can round off their line and give a bogus hit.
+        Bounding boxes are built from :meth:`triangles`, so they still enclose the
+        original corners.
+        """
+        tri = self.triangles()
+        wide = tri.astype(np.float64)
+        cross = np.cross(wide[:, 1] - wide[:, 0], wide[:, 2] - wide[:, 0])
+        degenerate = ~np.any(cross != 0.0, axis=1)
+        rows = tri.reshape(-1, 9).copy()
+        rows[degenerate, 3:6] = rows[degenerate, 0:3]
+        rows[degenerate, 6:9] = rows[degenerate, 0:3]
+        return rows
+
     def bounds(self) -> tuple[FloatArray, FloatArray]:
         """Return ``(lo, hi)``, the float32 bounding box of the referenced vertices."""
         used = self.vertices[self.faces.reshape(-1)]
