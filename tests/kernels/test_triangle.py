@@ -206,10 +206,3 @@ def test_point_triangle_never_hit_by_jitted_form():
     t, prim, _, _ = hit_jit(reference.tri9(mesh)[:1], o, d)
     assert prim == -1, f"the point triangle was hit at t={t}"
 
-
-def test_fastmath_never_contracts_to_fma():
-    """FMA contraction breaks the antisymmetry of the edge functions (see _jit.py)."""
-    from rayaccel._jit import FASTMATH
-
-    assert "contract" not in FASTMATH
-    assert not {"nnan", "ninf", "fast"} & FASTMATH

@@ -5,9 +5,13 @@ dominant axis ``kz`` of the direction becomes z, the other two are permuted to
 keep the winding, and a shear maps the direction onto z. Each vertex is then
 reduced to 2D sheared coordinates, and the three 2D edge functions ``U, V, W``
 decide the hit with no epsilon: a point on a shared edge is classified the same
-way from both triangles, so no ray slips between them. When an edge function is
-exactly zero it is recomputed in float64, as the paper prescribes, so the sign
-test stays consistent along shared edges and at vertices.
+way from both triangles, so no ray slips between them. The paper recomputes an
+edge function in float64 when its float32 value is exactly zero; we always
+evaluate the three edge functions in float64, where the products of float32
+operands are exact. That makes every sign exact and keeps the test watertight
+even when the compiler fuses multiply-adds (``fastmath`` ``contract``), which
+would otherwise break the antisymmetry of ``Cx*By - Cy*Bx`` in float32 and open
+cracks along shared edges. The remaining arithmetic (shear, ``t``) stays float32.
 
 Two functions: :func:`ray_triangle_setup_py` computes the per-ray constants
 ``(kx, ky, kz, Sx, Sy, Sz)`` once; :func:`ray_triangle_py` tests one triangle
@@ -111,23 +115,21 @@ def ray_triangle_py(tri, row, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, tmin, tmax)
     By = Bky - Sy * Bkz
     Cx = Ckx - Sx * Ckz
     Cy = Cky - Sy * Ckz
-    # Scaled barycentrics: 2D edge functions.
-    U = Cx * By - Cy * Bx
-    V = Ax * Cy - Ay * Cx
-    W = Bx * Ay - By * Ax
-    # Exactly zero: redo in double precision for a consistent edge classification.
-    if U == F32_ZERO or V == F32_ZERO or W == F32_ZERO:
-        U = np.float32(np.float64(Cx) * np.float64(By) - np.float64(Cy) * np.float64(Bx))
-        V = np.float32(np.float64(Ax) * np.float64(Cy) - np.float64(Ay) * np.float64(Cx))
-        W = np.float32(np.float64(Bx) * np.float64(Ay) - np.float64(By) * np.float64(Ax))
+    # Scaled barycentrics: 2D edge functions in float64. Products of two float32 are
+    # exact there, so each sign is exact and a shared edge's function is exactly
+    # antisymmetric, with or without FMA contraction (see the module docstring).
+    U64 = np.float64(Cx) * np.float64(By) - np.float64(Cy) * np.float64(Bx)
+    V64 = np.float64(Ax) * np.float64(Cy) - np.float64(Ay) * np.float64(Cx)
+    W64 = np.float64(Bx) * np.float64(Ay) - np.float64(By) * np.float64(Ax)
     # Edge test without backface culling.
-    if (U < F32_ZERO or V < F32_ZERO or W < F32_ZERO) and (
-        U > F32_ZERO or V > F32_ZERO or W > F32_ZERO
-    ):
+    if (U64 < 0.0 or V64 < 0.0 or W64 < 0.0) and (U64 > 0.0 or V64 > 0.0 or W64 > 0.0):
         return F32_INF, F32_ZERO, F32_ZERO
+    if U64 + V64 + W64 == 0.0:
+        return F32_INF, F32_ZERO, F32_ZERO
+    U = np.float32(U64)
+    V = np.float32(V64)
+    W = np.float32(W64)
     det = U + V + W
-    if det == F32_ZERO:
-        return F32_INF, F32_ZERO, F32_ZERO
     # Scaled hit distance; divide once.
     T = U * (Sz * Akz) + V * (Sz * Bkz) + W * (Sz * Ckz)
     rcp = F32_ONE / det
