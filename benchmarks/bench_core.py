@@ -86,8 +86,10 @@ def main(argv: list[str] | None = None) -> int:
     for line in (report.environment_line(records), report.compile_summary(records)):
         if line:
             print(f"- {line}")
-    print(f"- {args.width}x{args.height} primary rays, median and best of {args.repeats} runs "
-          f"after one warm-up; '× open3d' is Mrays/s divided by Open3D's on the same rays")
+    print(
+        f"- {args.width}x{args.height} primary rays, median and best of {args.repeats} runs "
+        f"after one warm-up; '× open3d' is Mrays/s divided by Open3D's on the same rays"
+    )
     for note in notes:
         print(f"- {note}")
     print(f"\n{len(records)} records in {output}", file=sys.stderr)

@@ -11,7 +11,7 @@ import rayaccel
 import reference
 from rayaccel import api, config, registry
 from rayaccel.counters import COUNTER_NAMES
-from rayaccel.errors import InvalidInputError, StructureInvariantError
+from rayaccel.errors import InvalidInputError, StructureInvariantError, UnknownVariantError
 from rayaccel.rays.batch import HitBatch, RayBatch
 
 
@@ -247,3 +247,55 @@ def test_trace_rejects_batch_subclass_lookalike(teapot):
     with pytest.raises(InvalidInputError):
         teapot.trace(Fake())
     assert isinstance(RayBatch(np.zeros((1, 3)), np.ones((1, 3))), RayBatch)
+
+
+# --------------------------------------------------------------------------- build steps
+
+
+@dataclasses.dataclass(frozen=True)
+class _CountOptions:
+    scale: int = 1
+
+
+def _count_step(bvh, mesh, options):
+    _STEP_CALLS.append((bvh.n_nodes, mesh.n_triangles, options.scale))
+    return bvh
+
+
+_STEP_CALLS: list = []
+
+
+@pytest.fixture
+def count_step(monkeypatch):
+    from rayaccel._variant import REGISTRY, Variant
+
+    _STEP_CALLS.clear()
+    monkeypatch.setitem(REGISTRY, "bvh2+count", Variant(
+        "bvh2+count", "step", "bvh2", _count_step, _CountOptions, "test step"))
+    return _STEP_CALLS
+
+
+def test_build_chains_steps_with_their_options(count_step):
+    mesh = rayaccel.scenes.get("cornell-box")
+    accel = rayaccel.build(mesh, "bvh2.binned_sah+count+count", max_leaf_size=2,
+                           count={"scale": 3})
+    assert [c[2] for c in count_step] == [3, 3]
+    assert count_step[0][1] == mesh.n_triangles
+    assert accel.options.max_leaf_size == 2
+    info = accel.info()
+    assert info["builder"] == "bvh2.binned_sah+count+count"
+    assert list(info["step_ms"]) == ["bvh2.binned_sah", "bvh2+count"]
+    accel.validate()
+    assert accel.intersect([[278, 273, -800]], [[0, 0, 1]]).hit[0]
+
+
+def test_build_chain_errors_name_the_problem(count_step):
+    mesh = rayaccel.scenes.get("cornell-box")
+    with pytest.raises(UnknownVariantError, match="did you mean count"):
+        rayaccel.build(mesh, "bvh2.binned_sah+cuont")
+    with pytest.raises(UnknownVariantError, match="unknown option 'scal'"):
+        rayaccel.build(mesh, "bvh2.binned_sah+count", count={"scal": 2})
+    with pytest.raises(InvalidInputError, match="step options are a dict"):
+        rayaccel.build(mesh, "bvh2.binned_sah+count", count=2)
+    with pytest.raises(UnknownVariantError):
+        rayaccel.build(mesh, "bvh2.binned_sah", count={"scale": 2})

@@ -15,7 +15,10 @@ from typing import Any, Literal
 
 from rayaccel.errors import InvalidInputError, UnknownVariantError
 
-Role = Literal["builder", "traversal"]
+Role = Literal["builder", "traversal", "step"]
+
+#: Separates a builder key from the build steps chained after it (``bvh2.lbvh+reinsert``).
+STEP_SEPARATOR = "+"
 
 
 @dataclass(frozen=True, slots=True)
@@ -25,12 +28,14 @@ class Variant:
     Attributes
     ----------
     key : str
-        ``<structure>.<algorithm or method>``.
-    role : {"builder", "traversal"}
+        ``<structure>.<algorithm or method>``; a step is ``<structure>+<name>``.
+    role : {"builder", "traversal", "step"}
     structure : str
         The structure the variant builds or traverses (``"bvh2"``).
     func : callable
-        Builder: ``func(mesh, options) -> structure``. Traversal: see :mod:`rayaccel.api`.
+        Builder: ``func(mesh, options) -> structure``. Step: ``func(structure, mesh,
+        options) -> structure`` (a post-process chained after a builder). Traversal:
+        see :mod:`rayaccel.api`.
     options : type
         Frozen dataclass of keyword options with defaults.
     summary : str
@@ -80,7 +85,9 @@ def register(
     backend: Literal["cpu", "cuda"] = "cpu",
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """Decorator registering ``func`` as the variant ``key``."""
-    structure = key.split(".", 1)[0]
+    structure = key.replace(STEP_SEPARATOR, ".").split(".", 1)[0]
+    if (role == "step") != (STEP_SEPARATOR in key):
+        raise ValueError(f"variant {key!r}: steps, and only steps, are named <structure>+<name>")
 
     def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
         if key in REGISTRY and REGISTRY[key].func is not func:

@@ -55,15 +55,26 @@ class Accel:
         The builder options used.
     build_ms : float
         Wall-clock build time (includes numba compilation on a process's first build).
+    step_ms : dict of str to float
+        Wall-clock time of the builder and of each chained step, by registry key.
     """
 
-    def __init__(self, key: str, mesh: TriangleMesh, structure: Any, options: Any, build_ms: float):
+    def __init__(
+        self,
+        key: str,
+        mesh: TriangleMesh,
+        structure: Any,
+        options: Any,
+        build_ms: float,
+        step_ms: dict[str, float] | None = None,
+    ):
         self.key = key
         self.mesh = mesh
         self.structure = structure
         self.options = options
         self.build_ms = build_ms
-        self.structure_name = registry.get(key, "builder").structure
+        self.step_ms = dict(step_ms or {key: build_ms})
+        self.structure_name = registry.get_chain(key)[0].structure
         self._cache: dict[str, Any] = {}
         self._lock = threading.Lock()
 
@@ -197,6 +208,7 @@ class Accel:
             "builder": self.key,
             "structure": self.structure_name,
             "build_ms": round(self.build_ms, 3),
+            "step_ms": {k: round(v, 3) for k, v in self.step_ms.items()},
             "n_prims": self.mesh.n_triangles,
         }
         if hasattr(s, "info"):
@@ -228,9 +240,11 @@ def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> A
     ----------
     mesh : TriangleMesh
     key : str
-        Builder registry key (``rayaccel list``), e.g. ``"bvh2.binned_sah"``.
+        Builder registry key (``rayaccel list``), e.g. ``"bvh2.binned_sah"``,
+        optionally followed by build steps run in order: ``"bvh2.lbvh+reinsert"``.
     **options
-        The builder's options (e.g. ``max_leaf_size=4``); unknown names raise.
+        The builder's options (e.g. ``max_leaf_size=4``); a step's options go in a
+        dict named after the step (``reinsert={"iterations": 2}``). Unknown names raise.
 
     Returns
     -------
@@ -248,13 +262,27 @@ def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> A
             f"mesh: expected a rayaccel.TriangleMesh, got {type(mesh).__name__} "
             "(use rayaccel.TriangleMesh(vertices, faces) or rayaccel.load_mesh(path))"
         )
-    variant = registry.get(key, "builder")
+    variant, steps = registry.get_chain(key)
+    step_names = [step.key.split("+", 1)[1] for step in steps]
+    step_values = {name: options.pop(name) for name in set(step_names) if name in options}
+    step_opts = []
+    for step, name in zip(steps, step_names):
+        values = step_values.get(name)
+        if values is not None and not isinstance(values, dict):
+            raise InvalidInputError(f"{name}: step options are a dict, got {values!r}")
+        step_opts.append(step.make_options(values))
     opts = variant.make_options(options)
     start = time.perf_counter()
+    step_ms: dict[str, float] = {}
     with config.parallel_section():
         structure = variant.func(mesh, opts)
+        step_ms[variant.key] = (time.perf_counter() - start) * 1e3
+        for step, step_opt in zip(steps, step_opts):
+            step_start = time.perf_counter()
+            structure = step.func(structure, mesh, step_opt)
+            step_ms[step.key] = (time.perf_counter() - step_start) * 1e3
     build_ms = (time.perf_counter() - start) * 1e3
-    accel = Accel(key, mesh, structure, opts, build_ms)
+    accel = Accel(key, mesh, structure, opts, build_ms, step_ms)
     if config.DEBUG:
         accel.validate()
     return accel

@@ -1,10 +1,12 @@
 """The variant registry: every builder and traversal, enumerable by key (STYLE §6).
 
-Builders register as ``<structure>.<algorithm>`` (``bvh2.binned_sah``) and
-traversals as ``<structure>.<method>`` (``bvh2.stack``), each with an options
+Builders register as ``<structure>.<algorithm>`` (``bvh2.binned_sah``),
+traversals as ``<structure>.<method>`` (``bvh2.stack``) and build steps
+(post-processes) as ``<structure>+<name>`` (``bvh2+reinsert``), each with an options
 dataclass whose fields are the keyword options users may pass. The CLI, the
 benchmark matrix and the conformance tests enumerate the registry, so a new
-variant edits none of them. Modules are imported lazily from the explicit
+variant edits none of them. A build key may chain steps after the builder:
+``bvh2.lbvh+reinsert+collapse`` (:func:`get_chain`). Modules are imported lazily from the explicit
 :data:`BUILTIN_MODULES` tuple the first time the registry is read.
 """
 
@@ -13,10 +15,19 @@ from __future__ import annotations
 import difflib
 import importlib
 
-from rayaccel._variant import REGISTRY, Role, Variant, register
+from rayaccel._variant import REGISTRY, STEP_SEPARATOR, Role, Variant, register
 from rayaccel.errors import UnknownVariantError
 
-__all__ = ["BUILTIN_MODULES", "Role", "Variant", "get", "keys", "register", "variants"]
+__all__ = [
+    "BUILTIN_MODULES",
+    "Role",
+    "Variant",
+    "get",
+    "get_chain",
+    "keys",
+    "register",
+    "variants",
+]
 
 #: Every module that registers variants (a test checks no build_/traverse_ module is missing).
 BUILTIN_MODULES: tuple[str, ...] = (
@@ -63,3 +74,27 @@ def get(key: str, role: Role | None = None) -> Variant:
         kind = role or "variant"
         raise UnknownVariantError(f"unknown {kind} {key!r}{hint} (known: {', '.join(candidates)})")
     return variant
+
+
+def get_chain(key: str) -> tuple[Variant, list[Variant]]:
+    """Split a build key ``builder[+step...]`` into the builder and its steps, in order.
+
+    ``"bvh2.lbvh+reinsert"`` gives the ``bvh2.lbvh`` builder and the ``bvh2+reinsert``
+    step. Unknown builders and steps, and steps of another structure, raise with
+    close matches.
+    """
+    base, *names = key.split(STEP_SEPARATOR)
+    builder = get(base, "builder")
+    steps = []
+    for name in names:
+        step_key = f"{builder.structure}{STEP_SEPARATOR}{name}"
+        if step_key not in REGISTRY or REGISTRY[step_key].role != "step":
+            known = [v.key.split(STEP_SEPARATOR, 1)[1] for v in variants("step", builder.structure)]
+            close = difflib.get_close_matches(name, known, n=3, cutoff=0.5)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise UnknownVariantError(
+                f"unknown build step {name!r} for {builder.structure!r} in {key!r}{hint} "
+                f"(known: {', '.join(known) or 'none'})"
+            )
+        steps.append(REGISTRY[step_key])
+    return builder, steps
