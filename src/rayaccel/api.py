@@ -266,7 +266,7 @@ def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> A
     step_names = [step.key.split("+", 1)[1] for step in steps]
     step_values = {name: options.pop(name) for name in set(step_names) if name in options}
     step_opts = []
-    for step, name in zip(steps, step_names):
+    for step, name in zip(steps, step_names, strict=True):
         values = step_values.get(name)
         if values is not None and not isinstance(values, dict):
             raise InvalidInputError(f"{name}: step options are a dict, got {values!r}")
@@ -277,7 +277,7 @@ def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> A
     with config.parallel_section():
         structure = variant.func(mesh, opts)
         step_ms[variant.key] = (time.perf_counter() - start) * 1e3
-        for step, step_opt in zip(steps, step_opts):
+        for step, step_opt in zip(steps, step_opts, strict=True):
             step_start = time.perf_counter()
             structure = step.func(structure, mesh, step_opt)
             step_ms[step.key] = (time.perf_counter() - step_start) * 1e3
