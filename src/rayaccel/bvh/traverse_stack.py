@@ -309,33 +309,23 @@ def run_trace(
     counters = empty_counters(n, stats)
     parallel = n >= PARALLEL_MIN_RAYS
     kernel = kernel_for(QUERIES[query], bool(stats), parallel)
+    args = (
+        layout_arrays,
+        rays.origin,
+        rays.direction,
+        rays.tmin,
+        rays.tmax,
+        hits.t,
+        hits.prim,
+        hits.u,
+        hits.v,
+        counters,
+    )
     if parallel:
         with parallel_section(), numba.parallel_chunksize(1):
-            overflow = kernel(
-                layout_arrays,
-                rays.origin,
-                rays.direction,
-                rays.tmin,
-                rays.tmax,
-                hits.t,
-                hits.prim,
-                hits.u,
-                hits.v,
-                counters,
-            )
+            overflow = kernel(*args)
     else:
-        overflow = kernel(
-            layout_arrays,
-            rays.origin,
-            rays.direction,
-            rays.tmin,
-            rays.tmax,
-            hits.t,
-            hits.prim,
-            hits.u,
-            hits.v,
-            counters,
-        )
+        overflow = kernel(*args)
     if overflow:
         raise TraversalOverflowError(
             f"{overflow} rays overflowed the {STACK_SIZE}-entry traversal stack; "
