@@ -37,6 +37,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.traverse_skip",
     "rayaccel.bvh.traverse_parent_link",
     "rayaccel.bvh.traverse_bitstack",
+    "rayaccel.bvh.traverse_restart_trail",
 )
 
 
