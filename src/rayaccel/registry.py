@@ -38,6 +38,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.traverse_parent_link",
     "rayaccel.bvh.traverse_bitstack",
     "rayaccel.bvh.traverse_restart_trail",
+    "rayaccel.bvh.traverse_perfect_hash",
 )
 
 
