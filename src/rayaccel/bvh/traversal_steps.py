@@ -14,9 +14,13 @@ numerics: the CUDA mirrors will have their own.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from rayaccel._jit import cpu_inline
+from rayaccel.bvh.layout import MAX_DEPTH, STACK_SIZE
+from rayaccel.errors import TraversalOverflowError
 from rayaccel.kernels.aabb import culling_pad, ray_box_entry
 from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup
 
@@ -127,3 +131,21 @@ ray_prologue = cpu_inline(ray_prologue_py)
 box_entry = cpu_inline(box_entry_py)
 box_exit = cpu_inline(box_exit_py)
 intersect_leaf = cpu_inline(intersect_leaf_py)
+
+
+def check_trail_depth(bvh: Any, cache: dict[str, Any] | None, key: str) -> None:
+    """Raise ``TraversalOverflowError`` if ``bvh`` is deeper than a 64-bit trail can follow.
+
+    Builders bound the depth by ``MAX_DEPTH`` (56), within every trail's bits; only a
+    hand-made tree can be deeper. The depth is memoised in ``cache``.
+    """
+    depth = cache.get("bvh2.depth") if cache is not None else None
+    if depth is None:
+        depth = bvh.depth()
+        if cache is not None:
+            cache["bvh2.depth"] = depth
+    if depth > MAX_DEPTH:
+        raise TraversalOverflowError(
+            f"{key}: the tree is {depth} levels deep, deeper than MAX_DEPTH = {MAX_DEPTH}; "
+            f"its per-level trail holds at most {MAX_DEPTH} levels of a {STACK_SIZE}-bit word"
+        )

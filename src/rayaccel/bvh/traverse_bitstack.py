@@ -38,7 +38,13 @@ from rayaccel._jit import cpu_kernel, prefetch_row
 from rayaccel._variant import register
 from rayaccel.bvh.layout import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.links import LINK_BYTES, linked_layout
-from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue
+from rayaccel.bvh.traversal_steps import (
+    INF32,
+    box_entry,
+    check_trail_depth,
+    intersect_leaf,
+    ray_prologue,
+)
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -240,6 +246,7 @@ def trace_bvh2_bitstack(
         Bit-identical to ``bvh2.stack``.
     """
     _ = options
+    check_trail_depth(bvh, cache, "bvh2.bitstack")
     packed = packed_layout(bvh, mesh, cache)
     linked = linked_layout(packed, cache)
     return run_trace(trace_kernel, linked.arrays(), rays, query, stats)

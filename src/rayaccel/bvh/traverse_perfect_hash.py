@@ -70,6 +70,7 @@ from rayaccel.bvh.traversal_steps import (
     INF32,
     box_entry,
     box_exit,
+    check_trail_depth,
     intersect_leaf,
     ray_prologue,
 )
@@ -483,6 +484,7 @@ def trace_bvh2_perfect_hash(
         Bit-identical to ``bvh2.stack`` with every combination of switches.
     """
     opts = options or PerfectHashOptions()
+    check_trail_depth(bvh, cache, "bvh2.perfect_hash")
     packed = packed_layout(bvh, mesh, cache)
     keyed = keyed_layout(packed, cache)
     return run_trace(trace_kernel, keyed.arrays(opts.switches()), rays, query, stats)
@@ -701,5 +703,6 @@ def start_traversal(
     cache : dict, optional
         Memo for the derived layouts (an ``Accel`` passes its own).
     """
+    check_trail_depth(bvh, cache, "traversal_state")
     packed = packed_layout(bvh, mesh, cache)
     return TraversalState(keyed_layout(packed, cache), rays)

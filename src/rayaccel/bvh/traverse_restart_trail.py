@@ -54,7 +54,13 @@ from rayaccel.bvh.layout import (
     TRIANGLE_BYTES,
     Bvh2,
 )
-from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue
+from rayaccel.bvh.traversal_steps import (
+    INF32,
+    box_entry,
+    check_trail_depth,
+    intersect_leaf,
+    ray_prologue,
+)
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.dtypes import FloatArray, IntArray
@@ -312,6 +318,7 @@ def trace_bvh2_restart_trail(
         Bit-identical to ``bvh2.stack``.
     """
     opts = options or RestartTrailOptions()
+    check_trail_depth(bvh, cache, "bvh2.restart_trail")
     packed = packed_layout(bvh, mesh, cache)
     arrays = RestartArrays(*packed.arrays(), operator.index(opts.short_stack))
     return run_trace(trace_kernel, arrays, rays, query, stats)
