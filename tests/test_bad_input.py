@@ -316,4 +316,6 @@ def test_tree_as_deep_as_the_stack_allows_traces_correctly(traversal):
     hits = func(bvh, mesh, rays, query="closest", stats=True, options=None, cache=None)
     ref = reference.oracle(mesh, rays)
     reference.assert_closest_matches(reference.tri9(mesh), rays, hits, ref)
-    assert hits.stats["stack_peak"][0] == MAX_DEPTH
+    if traversal == "bvh2.stack":
+        # Stackless traversals have no stack (restart_trail reports its short stack).
+        assert hits.stats["stack_peak"][0] == MAX_DEPTH

@@ -189,6 +189,37 @@ class Accel:
         rays = RayBatch(origins, directions, tmin, tmax)
         return self.trace(rays, query="any", traversal=traversal, **options).hit
 
+    def traversal_state(
+        self,
+        origins: Any,
+        directions: Any,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+    ) -> Any:
+        """Return a pausable traversal per ray (Binder & Keller 2016, building block 5).
+
+        Each ``state.next_hits()`` call resumes every ray where it stopped and returns
+        its next hit in traversal order; ``state.all_hits()`` collects every hit in
+        ``[tmin, tmax]`` sorted by ray, ``t`` and primitive. See
+        :class:`rayaccel.bvh.traverse_perfect_hash.TraversalState`.
+
+        Raises
+        ------
+        InvalidInputError
+            The structure is not a ``bvh2``.
+        """
+        if self.structure_name != "bvh2":
+            raise InvalidInputError(
+                f"traversal_state: only bvh2 structures can pause and resume, "
+                f"this accel is a {self.structure_name!r}"
+            )
+        from rayaccel.bvh.traverse_perfect_hash import start_traversal
+
+        rays = RayBatch(origins, directions, tmin, tmax)
+        with self._lock:
+            cache = self._cache
+        return start_traversal(self.structure, self.mesh, rays, cache=cache)
+
     # -- structure -----------------------------------------------------------------------------
 
     def derived(self, name: str) -> Any:

@@ -184,7 +184,7 @@ def cmd_list(args: argparse.Namespace) -> int:
         _out()
     _out("Counters (per ray; heatmap --metric):")
     for name in COUNTER_NAMES:
-        _out(f"  {name:<12}  {counter_unit(name)}")
+        _out(f"  {name:<22}  {counter_unit(name)}")
     _out()
     _out("Peers (bench --peers):")
     for name, cls in PEERS.items():

@@ -12,6 +12,16 @@ Counters shared by every traversal:
 ``prim_tests``  ray/primitive tests
 ``stack_peak``  the deepest the traversal stack got
 ``bytes``       estimated bytes fetched: nodes, references, triangles, stack traffic
+
+Counters of the stackless traversals (0 for traversals they do not apply to):
+
+``restarts``               restarts from the root (restart trail)
+``backtracks``             backtracking operations: trail pops, parent steps, jumps
+``hash_lookups``           perfect-hash lookups (constant-time backtracking)
+``backtrack_sibling``      backtracks whose target is the sibling (0 levels up)
+``backtrack_uncle``        ... the uncle (1 level up)
+``backtrack_grand_uncle``  ... the grand-uncle (2 levels up)
+``backtrack_further``      ... further up (3 or more levels)
 """
 
 from __future__ import annotations
@@ -30,6 +40,13 @@ class Counter(IntEnum):
     PRIM_TESTS = 3
     STACK_PEAK = 4
     BYTES = 5
+    RESTARTS = 6
+    BACKTRACKS = 7
+    HASH_LOOKUPS = 8
+    BACKTRACK_SIBLING = 9
+    BACKTRACK_UNCLE = 10
+    BACKTRACK_GRAND_UNCLE = 11
+    BACKTRACK_FURTHER = 12
 
 
 N_COUNTERS = len(Counter)

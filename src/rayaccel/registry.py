@@ -34,6 +34,11 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.build_binned_sah",
     "rayaccel.bvh.build_sweep_sah",
     "rayaccel.bvh.traverse_stack",
+    "rayaccel.bvh.traverse_skip",
+    "rayaccel.bvh.traverse_parent_link",
+    "rayaccel.bvh.traverse_bitstack",
+    "rayaccel.bvh.traverse_restart_trail",
+    "rayaccel.bvh.traverse_perfect_hash",
 )
 
 

@@ -1,0 +1,252 @@
+"""Stackless BVH2 traversal with a bitstack and parent links (``bvh2.bitstack``).
+
+Áfra & Szirmay-Kalos, "Stackless Multi-BVH Traversal for CPU, MIC and GPU Ray
+Tracing", CGF 33(1), 2014, binary form (the "Stackless [Áfra 2014]" baseline of
+Binder & Keller 2016). The stack of postponed far children is replaced by one bit
+per level of the current path: descending shifts the bitstack left and sets the new
+bit when both children were hit (the far one is pending at that level). To
+backtrack, climb parent links while the lowest bit is 0, shifting it out; at the
+first 1 the pending node is the *sibling* of the current one (it is always "the
+other child"), so clear the bit and go there. Because the pending node is implied,
+the near/far order can follow the ray's entry distances, exactly as ``bvh2.stack``.
+
+Before entering the pending sibling its box is re-tested against the current
+``[tmin, t_hit]`` (one box test from the parent's row): this is the stack's pop test
+(``stack_t <= t_hit``), so the nodes visited and the hits are those of
+``bvh2.stack``, bit for bit. State per ray: one int64 (depth <= 62) and the current
+node; backtracking costs O(depth) parent steps.
+
+Layout: the packed rows of ``bvh2.stack`` plus up-links (:class:`rayaccel.bvh.links.
+LinkedBvh2`), derived once per accel and cached.
+
+Counters: ``steps`` iterations, ``nodes`` nodes entered (equals ``bvh2.stack``),
+``box_tests``, ``prim_tests``, ``backtracks`` parent steps climbed, the histogram of
+backtracking targets (``backtrack_sibling`` 0 levels up, ``_uncle`` 1,
+``_grand_uncle`` 2, ``_further`` more; culled targets count too), ``bytes``.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_kernel, prefetch_row
+from rayaccel._variant import register
+from rayaccel.bvh.layout import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.links import LINK_BYTES, linked_layout
+from rayaccel.bvh.traversal_steps import (
+    INF32,
+    box_entry,
+    check_trail_depth,
+    intersect_leaf,
+    ray_prologue,
+)
+from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.counters import Counter
+from rayaccel.rays.batch import HitBatch, RayBatch
+from rayaccel.scene.mesh import TriangleMesh
+
+ZERO32 = np.float32(0.0)
+_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
+
+
+@dataclass(frozen=True, slots=True)
+class BitstackOptions:
+    """Options of the ``bvh2.bitstack`` traversal (none; kept for a uniform API)."""
+
+
+@functools.cache
+def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
+    """Return the compiled bitstack traversal for one (query, with_stats, parallel) variant."""
+
+    @cpu_kernel(parallel=parallel)
+    def kernel(bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters):
+        """Trace every ray over ``bvh`` (LinkedArrays) with a bitstack; return 0."""
+        _ = (query, with_stats, parallel)
+        n_rays = origin.shape[0]
+        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
+        box = bvh.inner_box
+        refs = bvh.inner_ref
+        for chunk in prange(n_chunks):
+            for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
+                n_steps = 0
+                n_nodes = 0
+                n_box = 0
+                n_prim = 0
+                n_up = 0
+                n_bytes = 0
+                hist0 = 0
+                hist1 = 0
+                hist2 = 0
+                hist3 = 0
+                (
+                    valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+                ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+                best_prim = -1
+                best_u = ZERO32
+                best_v = ZERO32
+                box_lo = t_lo - pad
+                box_hi = t_hit + pad
+                entry = INF32
+                if valid:
+                    # The root box is tested once up front.
+                    entry = box_entry(
+                        bvh.root_box.reshape((1, 6)), 0, 0, ox, oy, oz, ix, iy, iz,
+                        nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+                    )  # fmt: skip
+                    if with_stats:
+                        n_box += 1
+                node = bvh.root_ref[0]
+                bits = np.int64(0)
+                done = entry == INF32
+                while not done:
+                    if with_stats:
+                        n_steps += 1
+                        n_nodes += 1
+                    if node >= 0:
+                        # Inner row: test both children; descend into the nearer hit one
+                        # and mark the level when the other is pending.
+                        c0 = refs[node, 12]
+                        c1 = refs[node, 13]
+                        if c0 >= 0:
+                            prefetch_row(box, c0)
+                        if c1 >= 0:
+                            prefetch_row(box, c1)
+                        t0 = box_entry(
+                            box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                            box_lo, box_hi,
+                        )  # fmt: skip
+                        t1 = box_entry(
+                            box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                            box_lo, box_hi,
+                        )  # fmt: skip
+                        if with_stats:
+                            n_box += 2
+                            n_bytes += PACKED_ROW_BYTES
+                        if t0 < INF32 or t1 < INF32:
+                            bits <<= 1
+                            if t0 < INF32 and t1 < INF32:
+                                bits |= 1
+                            node = c1 if t1 < t0 else c0
+                            continue
+                    else:
+                        # Leaf: test its triangles, shrinking t_hit.
+                        first = bvh.leaf_first[~node]
+                        last = first + bvh.leaf_count[~node]
+                        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                            bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                            Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                            query == QUERY_ANY,
+                        )  # fmt: skip
+                        box_hi = t_hit + pad
+                        if with_stats:
+                            n_prim += tested
+                            n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                        if query == QUERY_ANY and best_prim >= 0:
+                            break
+                    # Backtrack: climb while the level has nothing pending, then go to
+                    # the sibling if its box is still within [tmin, t_hit].
+                    done = True
+                    climbed = 0
+                    while bits != 0:
+                        up = bvh.row_up[node] if node >= 0 else bvh.leaf_up[~node]
+                        if with_stats:
+                            n_bytes += LINK_BYTES
+                        if bits & 1 == 0:
+                            node = up >> 1
+                            bits >>= 1
+                            climbed += 1
+                            if with_stats:
+                                n_up += 1
+                            continue
+                        bits ^= 1
+                        parent = up >> 1
+                        slot = 1 - (up & 1)
+                        if with_stats:
+                            n_box += 1
+                            n_bytes += PACKED_ROW_BYTES
+                            if climbed == 0:
+                                hist0 += 1
+                            elif climbed == 1:
+                                hist1 += 1
+                            elif climbed == 2:
+                                hist2 += 1
+                            else:
+                                hist3 += 1
+                        climbed = 0
+                        node = refs[parent, 12 + slot]
+                        t = box_entry(
+                            box, parent, 6 * slot, ox, oy, oz, ix, iy, iz, nx, ny, nz,
+                            fx, fy, fz, box_lo, box_hi,
+                        )  # fmt: skip
+                        if t < INF32:
+                            done = False
+                            break
+                if best_prim >= 0:
+                    hit_t[r] = t_hit
+                    hit_prim[r] = best_prim
+                    hit_u[r] = best_u
+                    hit_v[r] = best_v
+                if with_stats:
+                    counters[r, Counter.STEPS] = n_steps
+                    counters[r, Counter.NODES] = n_nodes
+                    counters[r, Counter.BOX_TESTS] = n_box
+                    counters[r, Counter.PRIM_TESTS] = n_prim
+                    counters[r, Counter.BACKTRACKS] = n_up
+                    counters[r, Counter.BACKTRACK_SIBLING] = hist0
+                    counters[r, Counter.BACKTRACK_UNCLE] = hist1
+                    counters[r, Counter.BACKTRACK_GRAND_UNCLE] = hist2
+                    counters[r, Counter.BACKTRACK_FURTHER] = hist3
+                    counters[r, Counter.BYTES] = n_bytes
+        return 0
+
+    return kernel
+
+
+@register(
+    "traversal",
+    "bvh2.bitstack",
+    options=BitstackOptions,
+    summary="stackless ordered traversal with a per-level bitstack and parent links",
+    reference="Áfra & Szirmay-Kalos 2014, Stackless Multi-BVH Traversal for CPU, MIC and GPU",
+)
+def trace_bvh2_bitstack(
+    bvh: Bvh2,
+    mesh: TriangleMesh,
+    rays: RayBatch,
+    *,
+    query: str = "closest",
+    stats: bool = False,
+    options: BitstackOptions | None = None,
+    cache: dict[str, Any] | None = None,
+) -> HitBatch:
+    """Trace rays through a binary BVH with a bitstack and parent links.
+
+    Parameters
+    ----------
+    bvh : Bvh2
+    mesh : TriangleMesh
+        The mesh ``bvh`` was built over.
+    rays : RayBatch
+    query : {"closest", "any"}
+    stats : bool
+        Also return per-ray counters in ``hits.stats``.
+    options : BitstackOptions, optional
+    cache : dict, optional
+        Memo for the derived layouts (an ``Accel`` passes its own).
+
+    Returns
+    -------
+    HitBatch
+        Bit-identical to ``bvh2.stack``.
+    """
+    _ = options
+    check_trail_depth(bvh, cache, "bvh2.bitstack")
+    packed = packed_layout(bvh, mesh, cache)
+    linked = linked_layout(packed, cache)
+    return run_trace(trace_kernel, linked.arrays(), rays, query, stats)

@@ -1,0 +1,257 @@
+"""Stackless BVH2 traversal with parent links (``bvh2.parent_link``; Hapala et al. 2011).
+
+Hapala, Davidovič, Wald, Havran, Slusallek, "Efficient Stack-less BVH Traversal for
+Ray Tracing", SCCG 2011. Instead of a stack, every node knows its parent; the walk
+is a three-state machine that decides the next node from where it came from:
+
+- *from the parent* (``DOWN``): entering an inner node, go to its near child;
+- *from the sibling* (``TRY``): test a child's box; a hit descends (or, for a leaf,
+  intersects it), then the near child hands over to its sibling and the far child
+  hands back to the parent;
+- *from the child* (``UP``): back at the parent; if the child was the near one, try
+  its sibling, otherwise keep climbing; leaving the root ends the traversal.
+
+Per-ray state is O(1) (node, slot and state), backtracking costs O(depth) parent
+steps. Hapala et al. use a ray-independent child order per node (the split axis and
+the ray's sign), because the order must be recomputable on the way up. We re-derive
+the *distance* order instead: in the packed layout (:mod:`rayaccel.bvh.layout`) both
+child boxes sit in the parent's 64-byte row, so coming back up costs one row fetch
+and two box tests, and the walk visits exactly the nodes of ``bvh2.stack`` in the
+same order, giving bit-identical hits (same ``t`` and primitive, same any-hit).
+Entry distances used for ordering are computed against ``[tmin, inf]``; a child is
+entered only if its entry is also within the current ``[tmin, t_hit]`` (padded as in
+``bvh2.stack``), which is exactly the stack's pop test.
+
+Layout: the packed rows of ``bvh2.stack`` plus up-links (:class:`rayaccel.bvh.links.
+LinkedBvh2`, 4 bytes per node), derived once per accel and cached.
+
+Counters: ``steps`` loop iterations, ``nodes`` nodes entered (equals ``bvh2.stack``),
+``box_tests`` (two per row visit, down or up), ``prim_tests``, ``backtracks`` parent
+steps (row visits on the way up), ``bytes`` (64 per row visit, 4 per up-link, leaf
+and triangle bytes).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_kernel
+from rayaccel._variant import register
+from rayaccel.bvh.layout import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.links import LINK_BYTES, linked_layout
+from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue
+from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.counters import Counter
+from rayaccel.rays.batch import HitBatch, RayBatch
+from rayaccel.scene.mesh import TriangleMesh
+
+ZERO32 = np.float32(0.0)
+_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
+#: States of the machine (Hapala et al.: from parent, from child, from sibling).
+DOWN = 0
+UP = 1
+TRY = 2
+
+
+@dataclass(frozen=True, slots=True)
+class ParentLinkOptions:
+    """Options of the ``bvh2.parent_link`` traversal (none; kept for a uniform API)."""
+
+
+@functools.cache
+def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
+    """Return the compiled parent-link traversal for one (query, with_stats, parallel) variant."""
+
+    @cpu_kernel(parallel=parallel)
+    def kernel(bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters):
+        """Trace every ray over ``bvh`` (LinkedArrays) with the three-state machine; return 0."""
+        _ = (query, with_stats, parallel)
+        n_rays = origin.shape[0]
+        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
+        box = bvh.inner_box
+        refs = bvh.inner_ref
+        for chunk in prange(n_chunks):
+            for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
+                n_steps = 0
+                n_nodes = 0
+                n_box = 0
+                n_prim = 0
+                n_up = 0
+                n_bytes = 0
+                (
+                    valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+                ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+                best_prim = -1
+                best_u = ZERO32
+                best_v = ZERO32
+                box_lo = t_lo - pad
+                box_hi = t_hit + pad
+                root = bvh.root_ref[0]
+                entry = INF32
+                if valid:
+                    # The root box is tested once up front.
+                    entry = box_entry(
+                        bvh.root_box.reshape((1, 6)), 0, 0, ox, oy, oz, ix, iy, iz,
+                        nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+                    )  # fmt: skip
+                    if with_stats:
+                        n_box += 1
+                if entry < INF32 and root < 0:
+                    # A single-leaf tree.
+                    first = bvh.leaf_first[~root]
+                    last = first + bvh.leaf_count[~root]
+                    t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                        bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                        Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, query == QUERY_ANY,
+                    )  # fmt: skip
+                    if with_stats:
+                        n_steps += 1
+                        n_nodes += 1
+                        n_prim += tested
+                        n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                elif entry < INF32:
+                    row = root
+                    state = DOWN
+                    slot = 0
+                    near = 0
+                    t0 = INF32
+                    t1 = INF32
+                    while True:
+                        if state != TRY:
+                            # At a row (entered from above, or back from a child): the
+                            # children's entry distances give the near child (ties: 0).
+                            t0 = box_entry(
+                                box, row, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                                box_lo, INF32,
+                            )  # fmt: skip
+                            t1 = box_entry(
+                                box, row, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                                box_lo, INF32,
+                            )  # fmt: skip
+                            near = 1 if t1 < t0 else 0
+                            if with_stats:
+                                n_steps += 1
+                                n_box += 2
+                                n_bytes += PACKED_ROW_BYTES
+                                if state == DOWN:
+                                    n_nodes += 1
+                                else:
+                                    n_up += 1
+                            if state == DOWN:
+                                # From the parent: try the near child first.
+                                slot = near
+                                state = TRY
+                            elif slot == near:
+                                # From the near child: its sibling is next.
+                                slot = 1 - near
+                                state = TRY
+                            else:
+                                # From the far child: this row is finished, climb.
+                                if row == root:
+                                    break
+                                up = bvh.row_up[row]
+                                row = up >> 1
+                                slot = up & 1
+                                if with_stats:
+                                    n_bytes += LINK_BYTES
+                                continue
+                        # Try child `slot`: enter it if its box is hit within [tmin, t_hit].
+                        t = t0 if slot == 0 else t1
+                        if t < INF32 and t <= box_hi:
+                            child = refs[row, 12 + slot]
+                            if child >= 0:
+                                row = child
+                                state = DOWN
+                                continue
+                            # Leaf: test its triangles, shrinking t_hit.
+                            first = bvh.leaf_first[~child]
+                            last = first + bvh.leaf_count[~child]
+                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                                query == QUERY_ANY,
+                            )  # fmt: skip
+                            box_hi = t_hit + pad
+                            if with_stats:
+                                n_steps += 1
+                                n_nodes += 1
+                                n_prim += tested
+                                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                            if query == QUERY_ANY and best_prim >= 0:
+                                break
+                        # The child is finished: hand over to the sibling, or climb.
+                        if slot == near:
+                            slot = 1 - near
+                        else:
+                            if row == root:
+                                break
+                            up = bvh.row_up[row]
+                            row = up >> 1
+                            slot = up & 1
+                            state = UP
+                            if with_stats:
+                                n_bytes += LINK_BYTES
+                if best_prim >= 0:
+                    hit_t[r] = t_hit
+                    hit_prim[r] = best_prim
+                    hit_u[r] = best_u
+                    hit_v[r] = best_v
+                if with_stats:
+                    counters[r, Counter.STEPS] = n_steps
+                    counters[r, Counter.NODES] = n_nodes
+                    counters[r, Counter.BOX_TESTS] = n_box
+                    counters[r, Counter.PRIM_TESTS] = n_prim
+                    counters[r, Counter.BACKTRACKS] = n_up
+                    counters[r, Counter.BYTES] = n_bytes
+        return 0
+
+    return kernel
+
+
+@register(
+    "traversal",
+    "bvh2.parent_link",
+    options=ParentLinkOptions,
+    summary="stackless three-state machine over parent and sibling links (distance order)",
+    reference="Hapala et al. 2011, Efficient Stack-less BVH Traversal for Ray Tracing",
+)
+def trace_bvh2_parent_link(
+    bvh: Bvh2,
+    mesh: TriangleMesh,
+    rays: RayBatch,
+    *,
+    query: str = "closest",
+    stats: bool = False,
+    options: ParentLinkOptions | None = None,
+    cache: dict[str, Any] | None = None,
+) -> HitBatch:
+    """Trace rays through a binary BVH with parent links and no stack.
+
+    Parameters
+    ----------
+    bvh : Bvh2
+    mesh : TriangleMesh
+        The mesh ``bvh`` was built over.
+    rays : RayBatch
+    query : {"closest", "any"}
+    stats : bool
+        Also return per-ray counters in ``hits.stats``.
+    options : ParentLinkOptions, optional
+    cache : dict, optional
+        Memo for the derived layouts (an ``Accel`` passes its own).
+
+    Returns
+    -------
+    HitBatch
+        Bit-identical to ``bvh2.stack``.
+    """
+    _ = options
+    packed = packed_layout(bvh, mesh, cache)
+    linked = linked_layout(packed, cache)
+    return run_trace(trace_kernel, linked.arrays(), rays, query, stats)

@@ -1,0 +1,173 @@
+"""Stackless BVH2 traversal with skip pointers (``bvh2.skip``; Smits 1998).
+
+Smits, "Efficiency Issues for Ray Tracing", JGT 3(2), 1998: store the nodes in
+depth-first pre-order and give each a *skip* pointer to the node that follows its
+subtree. The walk is a single index moving forward: a hit box goes to the next row
+(its first child, or for a leaf, after testing it, the next subtree), a missed box
+jumps to its skip pointer, and the walk ends past the last row. No stack, no
+backtracking, no per-ray state but the index; the price is a fixed child order
+(child 0 first, whatever the ray direction), so a closest-hit query cannot prune the
+far child with a hit found in the near one as early as an ordered traversal does.
+It is the stackless baseline without ordering.
+
+Layout: :class:`rayaccel.bvh.links.SkipBvh2` (32 bytes per node), derived once per
+accel and cached under ``"bvh2.skip"``; leaf tables and triangles are shared with
+the packed layout of ``bvh2.stack``.
+
+Results: the closest ``t`` is exactly that of ``bvh2.stack`` (every box that could
+hold a nearer hit is visited, and the triangle test is the same), but where two
+primitives are hit at exactly the same ``t`` the first found wins, and the order
+differs from the stack's, so the primitive may differ at exact ties. Any-hit queries
+agree on *whether* a ray is occluded; the reported primitive may differ.
+
+Counters: ``steps`` rows visited (boxes tested), ``nodes`` boxes hit (inner and
+leaf), ``box_tests``, ``prim_tests``, ``bytes`` (32 per row, 8 per leaf record, 40
+per triangle and reference); ``stack_peak`` and the backtracking counters are 0.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_kernel
+from rayaccel._variant import register
+from rayaccel.bvh.layout import LEAF_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.links import SKIP_ROW_BYTES, skip_layout
+from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue
+from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.counters import Counter
+from rayaccel.rays.batch import HitBatch, RayBatch
+from rayaccel.scene.mesh import TriangleMesh
+
+ZERO32 = np.float32(0.0)
+_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
+
+
+@dataclass(frozen=True, slots=True)
+class SkipOptions:
+    """Options of the ``bvh2.skip`` traversal (none; kept for a uniform API)."""
+
+
+@functools.cache
+def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
+    """Return the compiled skip-pointer traversal for one (query, with_stats, parallel) variant."""
+
+    @cpu_kernel(parallel=parallel)
+    def kernel(bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters):
+        """Walk the pre-order rows of ``bvh`` (SkipArrays) for every ray; return 0."""
+        _ = (query, with_stats, parallel)
+        n_rays = origin.shape[0]
+        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
+        rows = bvh.node_row
+        ints = bvh.node_int
+        n_nodes = rows.shape[0]
+        for chunk in prange(n_chunks):
+            for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
+                n_steps = 0
+                n_visited = 0
+                n_prim = 0
+                n_bytes = 0
+                (
+                    valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+                ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+                best_prim = -1
+                best_u = ZERO32
+                best_v = ZERO32
+                box_lo = t_lo - pad
+                box_hi = t_hit + pad
+                node = 0 if valid else n_nodes
+                while node < n_nodes:
+                    # Test this row's box: a hit steps into the subtree, a miss skips it.
+                    entry = box_entry(
+                        rows, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                        box_lo, box_hi,
+                    )  # fmt: skip
+                    if with_stats:
+                        n_steps += 1
+                        n_bytes += SKIP_ROW_BYTES
+                    if entry == INF32:
+                        node = ints[node, 6]
+                        continue
+                    if with_stats:
+                        n_visited += 1
+                    leaf = ints[node, 7]
+                    if leaf >= 0:
+                        # Leaf: test its triangles, shrinking t_hit, then go on after it.
+                        first = bvh.leaf_first[leaf]
+                        last = first + bvh.leaf_count[leaf]
+                        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                            bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                            Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                            query == QUERY_ANY,
+                        )  # fmt: skip
+                        box_hi = t_hit + pad
+                        if with_stats:
+                            n_prim += tested
+                            n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                        if query == QUERY_ANY and best_prim >= 0:
+                            break
+                    node += 1
+                if best_prim >= 0:
+                    hit_t[r] = t_hit
+                    hit_prim[r] = best_prim
+                    hit_u[r] = best_u
+                    hit_v[r] = best_v
+                if with_stats:
+                    counters[r, Counter.STEPS] = n_steps
+                    counters[r, Counter.NODES] = n_visited
+                    counters[r, Counter.BOX_TESTS] = n_steps
+                    counters[r, Counter.PRIM_TESTS] = n_prim
+                    counters[r, Counter.BYTES] = n_bytes
+        return 0
+
+    return kernel
+
+
+@register(
+    "traversal",
+    "bvh2.skip",
+    options=SkipOptions,
+    summary="stackless fixed-order walk over pre-order nodes with skip pointers",
+    reference="Smits 1998, Efficiency Issues for Ray Tracing",
+)
+def trace_bvh2_skip(
+    bvh: Bvh2,
+    mesh: TriangleMesh,
+    rays: RayBatch,
+    *,
+    query: str = "closest",
+    stats: bool = False,
+    options: SkipOptions | None = None,
+    cache: dict[str, Any] | None = None,
+) -> HitBatch:
+    """Trace rays through a binary BVH with skip pointers (no stack, fixed child order).
+
+    Parameters
+    ----------
+    bvh : Bvh2
+    mesh : TriangleMesh
+        The mesh ``bvh`` was built over.
+    rays : RayBatch
+    query : {"closest", "any"}
+    stats : bool
+        Also return per-ray counters in ``hits.stats``.
+    options : SkipOptions, optional
+    cache : dict, optional
+        Memo for the derived layouts (an ``Accel`` passes its own).
+
+    Returns
+    -------
+    HitBatch
+        The closest ``t`` equals ``bvh2.stack``'s bit for bit; the primitive may
+        differ at exact ties (see the module docstring).
+    """
+    _ = options
+    packed = packed_layout(bvh, mesh, cache)
+    skip = skip_layout(bvh, packed, cache)
+    return run_trace(trace_kernel, skip.arrays(), rays, query, stats)
