@@ -32,7 +32,10 @@ __all__ = [
 #: Every module that registers variants (a test checks no build_/traverse_ module is missing).
 BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.build_binned_sah",
+    "rayaccel.bvh.build_lbvh",
     "rayaccel.bvh.build_sweep_sah",
+    "rayaccel.bvh.step_collapse",
+    "rayaccel.bvh.step_reinsert",
     "rayaccel.bvh.traverse_stack",
 )
 
