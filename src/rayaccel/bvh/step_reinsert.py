@@ -249,6 +249,9 @@ def reinsert(bvh: Bvh2, mesh: TriangleMesh, options: ReinsertOptions | None = No
     batch_size = max(1, round(opt.batch_fraction * n_inner))
     root = np.int32(0)
     before = _inner_area(tree.left, tree.lo, tree.hi)
+    # An iteration may raise the cost (orphans need not find their old places): keep the best.
+    best = (root, tree.left.copy(), tree.right.copy(), parent.copy(), tree.lo.copy(),
+            tree.hi.copy())  # fmt: skip
     for _ in range(opt.max_iterations):
         score = _inefficiency(tree.left, tree.right, parent, tree.lo, tree.hi)
         k = min(batch_size, int(np.count_nonzero(score > 0)))
@@ -261,7 +264,12 @@ def reinsert(bvh: Bvh2, mesh: TriangleMesh, options: ReinsertOptions | None = No
             _reinsert_batch(root, batch, tree.left, tree.right, parent, tree.lo, tree.hi)
         )
         after = _inner_area(tree.left, tree.lo, tree.hi)
+        if after < before:
+            best = (root, tree.left.copy(), tree.right.copy(), parent.copy(), tree.lo.copy(),
+                    tree.hi.copy())  # fmt: skip
         if before - after < opt.tolerance * before:
             break
         before = after
+    root, left, right, _, lo, hi = best
+    tree = tree._replace(left=left, right=right, lo=lo, hi=hi)
     return linked_to_canonical(tree, int(root), bvh.n_prims, collapse=False)
