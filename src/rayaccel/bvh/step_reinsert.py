@@ -15,8 +15,10 @@ areas of inner nodes. Each iteration:
    ``C_I(X) + A(X ∪ L)``, and X's subtree is pruned when ``C_I(X) + A(L) >= best``.
    The freed N and P become the orphans' new parents; ancestors are refitted.
 
-Iterations stop when one improves the SAH cost by less than ``tolerance`` (relative)
-or after ``max_iterations``. The step is serial and deterministic. Reported: up to
+Iterations stop after ``patience`` iterations without a relative gain of ``tolerance``
+or after ``max_iterations``; the best tree seen is returned (an iteration may raise
+the cost, since orphans need not find their old places). Serial and deterministic.
+Reported: up to
 27% lower SAH than a SAH build, up to 88% lower than a spatial-median build; it
 helps LBVH most (Devillers thesis, §5).
 """
@@ -49,18 +51,23 @@ class ReinsertOptions:
     max_iterations : int
         Upper bound on iterations.
     tolerance : float
-        Stop when an iteration lowers the SAH cost by less than this fraction.
+        An iteration counts as progress when it lowers the best SAH cost by this fraction.
+    patience : int
+        Stop after this many iterations without progress.
     """
 
     batch_fraction: float = 0.01
     max_iterations: int = 100
     tolerance: float = 1e-3
+    patience: int = 3
 
     def __post_init__(self) -> None:
         if not 0 < self.batch_fraction <= 1:
             raise InvalidInputError(f"batch_fraction: expected (0, 1], got {self.batch_fraction}")
         if self.max_iterations < 0:
             raise InvalidInputError(f"max_iterations: expected >= 0, got {self.max_iterations}")
+        if self.patience < 1:
+            raise InvalidInputError(f"patience: expected >= 1, got {self.patience}")
         if not self.tolerance >= 0:
             raise InvalidInputError(f"tolerance: expected >= 0, got {self.tolerance}")
 
@@ -252,6 +259,8 @@ def reinsert(bvh: Bvh2, mesh: TriangleMesh, options: ReinsertOptions | None = No
     # An iteration may raise the cost (orphans need not find their old places): keep the best.
     best = (root, tree.left.copy(), tree.right.copy(), parent.copy(), tree.lo.copy(),
             tree.hi.copy())  # fmt: skip
+    best_cost = before
+    stale = 0
     for _ in range(opt.max_iterations):
         score = _inefficiency(tree.left, tree.right, parent, tree.lo, tree.hi)
         k = min(batch_size, int(np.count_nonzero(score > 0)))
@@ -264,12 +273,17 @@ def reinsert(bvh: Bvh2, mesh: TriangleMesh, options: ReinsertOptions | None = No
             _reinsert_batch(root, batch, tree.left, tree.right, parent, tree.lo, tree.hi)
         )
         after = _inner_area(tree.left, tree.lo, tree.hi)
-        if after < before:
+        if after < best_cost:
             best = (root, tree.left.copy(), tree.right.copy(), parent.copy(), tree.lo.copy(),
                     tree.hi.copy())  # fmt: skip
-        if before - after < opt.tolerance * before:
-            break
-        before = after
+        # Stop after `patience` iterations without a relative gain of `tolerance`.
+        if after < (1.0 - opt.tolerance) * best_cost:
+            stale = 0
+        else:
+            stale += 1
+            if stale >= opt.patience:
+                break
+        best_cost = min(best_cost, after)
     root, left, right, _, lo, hi = best
     tree = tree._replace(left=left, right=right, lo=lo, hi=hi)
     return linked_to_canonical(tree, int(root), bvh.n_prims, collapse=False)
