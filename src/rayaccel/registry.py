@@ -34,6 +34,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.build_binned_sah",
     "rayaccel.bvh.build_lbvh",
     "rayaccel.bvh.build_ploc",
+    "rayaccel.bvh.build_sbvh",
     "rayaccel.bvh.build_sweep_sah",
     "rayaccel.bvh.step_collapse",
     "rayaccel.bvh.step_reinsert",
