@@ -454,10 +454,11 @@ def _build_sbvh_task(
                     c_split = _half_area6(box_l) * n1 + _half_area6(box_r) * n2
                     c1 = a1 * n1 + _half_area6(box_r) * (n2 - 1)
                     c2 = _half_area6(box_l) * (n1 - 1) + a2 * n2
-                    if c1 < c_split and c1 <= c2:
+                    # Never empty a side (the counts are exact: n2 - 1 >= 1 keeps one).
+                    if c1 < c_split and c1 <= c2 and n2 > 1:
                         side = -1
                         n2 -= 1
-                    elif c2 < c_split:
+                    elif c2 < c_split and n1 > 1:
                         side = 1
                         n1 -= 1
                 if side < 0:
@@ -665,15 +666,21 @@ def build_sbvh(mesh: TriangleMesh, options: SbvhOptions | None = None) -> Bvh2:
         # Each subtree of capacity C gets 2C node slots, in task order.
         sizes = 2 * (tasks[:, 3] - tasks[:, 1]).astype(np.int64)
         task_base = (next_node + np.concatenate(([0], np.cumsum(sizes)[:-1]))).astype(np.int32)
+        top = next_node
         next_node = int(next_node + sizes.sum())
+        # Grow the node pool to hold every reserved block (unused slots stay unreachable).
+        left_of, right_of, t_first, t_count = (
+            np.concatenate((x[:top], np.full(next_node - top, fill, dtype=np.int32)))
+            for x, fill in ((left_of, -1), (right_of, -1), (t_first, 0), (t_count, -1))
+        )
         order = np.argsort(-(tasks[:, 2] - tasks[:, 1]), kind="stable")
         with numba.parallel_chunksize(1):
             _build_frontier(
                 refs, tri, np.ascontiguousarray(tasks[order]), task_base[order], *args,
                 left_of, right_of, t_first, t_count,
             )  # fmt: skip
-    lo = np.zeros((pool, 3), dtype=np.float32)
-    hi = np.zeros((pool, 3), dtype=np.float32)
+    lo = np.zeros((next_node, 3), dtype=np.float32)
+    hi = np.zeros((next_node, 3), dtype=np.float32)
     _leaf_boxes(refs, left_of, t_first, t_count, lo, hi, next_node)
     ids = np.ascontiguousarray(refs.view(np.int32)[:, 3])
     count = np.maximum(t_count, 0).astype(np.int32)
