@@ -440,8 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene-option", action="append", metavar="K=V",
                    help="procedural scene parameter, e.g. level=3")  # fmt: skip
     p.add_argument("--validate", action="store_true", help="also check every invariant")
-    p.add_argument("--epo", action="store_true",
-                   help="also compute the end-point overlap (slow on big scenes)")
+    p.add_argument(
+        "--epo", action="store_true", help="also compute the end-point overlap (slow on big scenes)"
+    )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_info)
 
