@@ -7,8 +7,9 @@ Morton order:
 
 1. sort the primitives by Morton code; each is a cluster;
 2. every cluster ``i`` finds its nearest neighbour among clusters ``i−r..i+r`` of the
-   current list, the distance being the surface area of the merged box (ties broken
-   by the pair's indices, a strict total order, so mutual pairs always exist);
+   current list, the distance being the surface area of the merged box (ties go to
+   the partner ``i xor 1``, then the nearest index, so equal boxes merge pairwise;
+   an iteration without a mutual pair merges the first two clusters);
 3. mutual nearest neighbours merge into a new inner node placed at the lower index;
 4. the list is compacted by a prefix sum, keeping Morton order; repeat until one
    cluster remains.
@@ -95,6 +96,7 @@ def _ploc_kernel(n_leaves, radius, left, right, lo, hi):
         for i in prange(c):
             best = np.inf
             best_j = -1
+            best_key = 1 << 30
             for j in range(max(0, i - radius), min(c, i + radius + 1)):
                 if j == i:
                     continue
@@ -102,10 +104,13 @@ def _ploc_kernel(n_leaves, radius, left, right, lo, hi):
                 ey = max(box[i, 4], box[j, 4]) - min(box[i, 1], box[j, 1])
                 ez = max(box[i, 5], box[j, 5]) - min(box[i, 2], box[j, 2])
                 d = ex * ey + ey * ez + ez * ex
-                # For a fixed i, the pair order (min, max) of two candidates follows j.
-                if d < best:
+                # Ties prefer the partner i xor 1, then the nearest index: equal boxes
+                # (copies of one triangle) then merge pairwise and halve per iteration.
+                key = 0 if j == (i ^ 1) else 2 * abs(i - j) + (1 if j > i else 0)
+                if d < best or (d == best and key < best_key):
                     best = d
                     best_j = j
+                    best_key = key
             nn[i] = best_j
         # Mutual pairs merge at the lower index; ids from an exclusive prefix sum.
         total = 0
