@@ -20,13 +20,15 @@ from rayaccel.rays.batch import RayBatch
 
 def _traversal_params() -> list:
     params = []
-    for builder in registry.variants("builder"):
-        for traversal in registry.keys("traversal", builder.structure):
-            params.append(pytest.param(builder.key, traversal, id=f"{builder.key}-{traversal}"))
+    for key in registry.build_keys():
+        structure = registry.get_chain(key)[0].structure
+        for traversal in registry.keys("traversal", structure):
+            params.append(pytest.param(key, traversal, id=f"{key}-{traversal}"))
     return params
 
 
-BUILDERS = [pytest.param(key, id=key) for key in registry.keys("builder")]
+# Every builder and every composed configuration (builder+steps) of the registry.
+BUILDERS = [pytest.param(key, id=key) for key in registry.build_keys()]
 TRAVERSALS = _traversal_params()
 QUERIES = [pytest.param(q, id=q) for q in ("closest", "any")]
 SCENES = scene_params(marks_slow_files=False)

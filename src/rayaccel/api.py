@@ -226,12 +226,31 @@ class Accel:
         """Return the derived layout ``name`` if a traversal has built it, else None."""
         return self._cache.get(name)
 
-    def info(self) -> dict[str, Any]:
+    def info(
+        self,
+        *,
+        inner_cost: float = 1.2,
+        prim_cost: float = 1.0,
+        epo: bool = False,
+        lcv_rays: RayBatch | None = None,
+    ) -> dict[str, Any]:
         """Return build and quality figures.
 
-        Keys: ``builder``, ``structure``, ``build_ms``, ``n_prims``, ``n_nodes``,
-        ``n_leaves``, ``n_refs``, ``depth``, ``sah``, ``mean_leaf_size``, ``bytes``
-        (canonical plus every derived layout built so far), ``options``.
+        Keys: ``builder``, ``structure``, ``build_ms``, ``step_ms``, ``n_prims``,
+        ``n_nodes``, ``n_leaves``, ``n_refs``, ``refs_per_prim``, ``depth``, ``sah``,
+        ``mean_leaf_size``, ``bytes`` (canonical plus every derived layout built so
+        far), ``options``; ``epo`` and ``lcv`` when requested.
+
+        Parameters
+        ----------
+        inner_cost, prim_cost : float
+            SAH (and EPO) constants ``C_inner`` and ``C_prim`` (Aila et al. 2013: 1.2, 1).
+        epo : bool
+            Also compute the end-point overlap (:func:`rayaccel.bvh.metrics.epo`;
+            seconds to a minute on million-triangle scenes).
+        lcv_rays : RayBatch, optional
+            Also compute the leaf count variability over these rays (closest hits
+            found with the default traversal).
         """
         s = self.structure
         derived_bytes = sum(int(v.nbytes()) for v in self._cache.values() if hasattr(v, "nbytes"))
@@ -250,9 +269,24 @@ class Accel:
                 n_leaves=s.n_leaves,
                 n_refs=s.n_refs,
                 depth=s.depth(),
-                sah=s.sah_cost(),
+                sah=s.sah_cost(inner_cost, prim_cost),
                 mean_leaf_size=s.n_refs / max(s.n_leaves, 1),
             )
+        if "n_refs" in info:
+            info["refs_per_prim"] = info["n_refs"] / max(self.mesh.n_triangles, 1)
+        if epo or lcv_rays is not None:
+            from rayaccel.bvh import metrics
+
+            if epo:
+                info["epo"] = metrics.epo(s, self.mesh.triangles(), inner_cost, prim_cost)
+            if lcv_rays is not None:
+                hits = self.trace(lcv_rays)
+                t_hit = np.minimum(hits.t, lcv_rays.tmax)
+                counts = metrics.leaf_counts(
+                    s, lcv_rays.origin, lcv_rays.direction, lcv_rays.tmin, t_hit
+                )
+                info["lcv"] = metrics.lcv(counts)
+                info["mean_leaves_per_ray"] = float(counts.mean()) if counts.size else 0.0
         info["bytes"] = int(s.nbytes()) + derived_bytes
         info["options"] = {
             k: getattr(self.options, k) for k in getattr(self.options, "__slots__", ())

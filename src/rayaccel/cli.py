@@ -124,11 +124,11 @@ def _builder_keys(values: Sequence[str] | None, default_all: bool) -> list[str]:
 
     keys = _split_list(values)
     if not keys:
-        return registry.keys("builder") if default_all else [default_builder()]
+        return registry.build_keys() if default_all else [default_builder()]
     if "all" in keys:
-        return registry.keys("builder")
+        return registry.build_keys()
     for key in keys:
-        registry.get(key, "builder")
+        registry.get_chain(key)
     return keys
 
 
@@ -164,6 +164,7 @@ def cmd_list(args: argparse.Namespace) -> int:
             ]
             for role in ("builder", "traversal")
         }  # fmt: skip
+        data["configurations"] = registry.configurations()  # type: ignore[assignment]
         data["counters"] = list(COUNTER_NAMES)  # type: ignore[assignment]
         data["peers"] = {name: cls().available() for name, cls in PEERS.items()}  # type: ignore[assignment]
         data["scenes"] = catalog.names()  # type: ignore[assignment]
@@ -182,6 +183,10 @@ def cmd_list(args: argparse.Namespace) -> int:
                 text = ", ".join(f"{k}={val!r}" for k, val in options.items())
                 _out(f"  {'':<{width}}  options: {text}")
         _out()
+    _out("Configurations (builder+steps; the thesis's BVH comparison):")
+    for key in registry.configurations():
+        _out(f"  {key}")
+    _out()
     _out("Counters (per ray; heatmap --metric):")
     for name in COUNTER_NAMES:
         _out(f"  {name:<22}  {counter_unit(name)}")
@@ -227,7 +232,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         "degenerate_triangles": int(np.count_nonzero(areas == 0)),
     }
     accel = api.build(mesh, args.accel, **parse_options(args.option))
-    accel_info = accel.info()
+    accel_info = accel.info(epo=args.epo)
     if args.validate:
         accel.validate()
         accel_info["validated"] = True
@@ -435,6 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene-option", action="append", metavar="K=V",
                    help="procedural scene parameter, e.g. level=3")  # fmt: skip
     p.add_argument("--validate", action="store_true", help="also check every invariant")
+    p.add_argument(
+        "--epo", action="store_true", help="also compute the end-point overlap (slow on big scenes)"
+    )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_info)
 

@@ -20,8 +20,11 @@ from rayaccel.errors import UnknownVariantError
 
 __all__ = [
     "BUILTIN_MODULES",
+    "CONFIGURATIONS",
     "Role",
     "Variant",
+    "build_keys",
+    "configurations",
     "get",
     "get_chain",
     "keys",
@@ -32,13 +35,32 @@ __all__ = [
 #: Every module that registers variants (a test checks no build_/traverse_ module is missing).
 BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.build_binned_sah",
+    "rayaccel.bvh.build_lbvh",
+    "rayaccel.bvh.build_ploc",
+    "rayaccel.bvh.build_sbvh",
     "rayaccel.bvh.build_sweep_sah",
+    "rayaccel.bvh.step_collapse",
+    "rayaccel.bvh.step_reinsert",
     "rayaccel.bvh.traverse_stack",
     "rayaccel.bvh.traverse_skip",
     "rayaccel.bvh.traverse_parent_link",
     "rayaccel.bvh.traverse_bitstack",
     "rayaccel.bvh.traverse_restart_trail",
     "rayaccel.bvh.traverse_perfect_hash",
+)
+
+#: Composed build keys enumerated beside the plain builders: the eight configurations of
+#: the Devillers thesis's BVH comparison (LBVH, PLOC, SAH, SBVH, each without and with
+#: reinsertion). ``rayaccel list``, the bench matrix and the conformance suite use them.
+CONFIGURATIONS: tuple[str, ...] = (
+    "bvh2.lbvh",
+    "bvh2.lbvh+reinsert",
+    "bvh2.ploc",
+    "bvh2.ploc+reinsert",
+    "bvh2.binned_sah",
+    "bvh2.binned_sah+reinsert",
+    "bvh2.sbvh",
+    "bvh2.sbvh+reinsert",
 )
 
 
@@ -66,6 +88,19 @@ def variants(role: Role | None = None, structure: str | None = None) -> list[Var
 def keys(role: Role | None = None, structure: str | None = None) -> list[str]:
     """Return registered keys, sorted."""
     return [v.key for v in variants(role, structure)]
+
+
+def configurations() -> list[str]:
+    """Return :data:`CONFIGURATIONS` (each checked to resolve to a builder chain)."""
+    for key in CONFIGURATIONS:
+        get_chain(key)
+    return list(CONFIGURATIONS)
+
+
+def build_keys() -> list[str]:
+    """Return every plain builder key, then the composed configurations not among them."""
+    plain = keys("builder")
+    return plain + [key for key in configurations() if key not in plain]
 
 
 def get(key: str, role: Role | None = None) -> Variant:

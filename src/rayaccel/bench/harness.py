@@ -136,7 +136,7 @@ class BenchConfig:
             raise InvalidInputError(f"validate: expected an int >= 0, got {self.validate!r}")
         parse_kinds(list(self.ray_kinds))
         for key in self.builders:
-            registry.get(key, "builder")
+            registry.get_chain(key)
         for key in self.traversals:
             registry.get(key, "traversal")
         for name in self.peers:
@@ -149,12 +149,12 @@ class BenchConfig:
                 )
 
     def builder_keys(self) -> list[str]:
-        """Return the builders to measure (every registered one if none was named)."""
-        return list(self.builders) or registry.keys("builder")
+        """Return the build keys to measure (every builder and configuration if none named)."""
+        return list(self.builders) or registry.build_keys()
 
     def traversal_keys(self, builder: str) -> list[str]:
         """Return the traversals to measure with ``builder``'s structure."""
-        structure = registry.get(builder, "builder").structure
+        structure = registry.get_chain(builder)[0].structure
         available = registry.keys("traversal", structure)
         if not self.traversals:
             return available

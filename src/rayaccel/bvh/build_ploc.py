@@ -1,0 +1,203 @@
+"""Parallel Locally-Ordered Clustering (PLOC), Meister & Bittner 2018.
+
+Meister & Bittner 2018, "Parallel Locally-Ordered Clustering for Bounding Volume
+Hierarchy Construction" (IEEE TVCG 24(3)). Agglomerative clustering in the spirit of
+Walter et al. 2008, made parallel by searching neighbours only in a window of the
+Morton order:
+
+1. sort the primitives by Morton code; each is a cluster;
+2. every cluster ``i`` finds its nearest neighbour among clusters ``i−r..i+r`` of the
+   current list, the distance being the surface area of the merged box (ties go to
+   the partner ``i xor 1``, then the nearest index, so equal boxes merge pairwise;
+   an iteration without a mutual pair merges the first two clusters);
+3. mutual nearest neighbours merge into a new inner node placed at the lower index;
+4. the list is compacted by a prefix sum, keeping Morton order; repeat until one
+   cluster remains.
+
+Steps 2 and 3 run in ``prange`` over clusters; node ids come from prefix sums, so the
+tree does not depend on the thread count. The merged tree has one primitive per
+leaf; the final conversion collapses leaves by the SAH (the authors' adaptive leaf
+collapsing, max leaf size 8). Defaults follow the authors' code: ``r = 25``, 60-bit
+(here 63-bit) Morton codes. Reported quality is close to a binned SAH build
+(Devillers thesis: 26.8 vs 26.4 primary Mrays/s). Cost O(n·r) per iteration, with
+the cluster count shrinking geometrically.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_kernel
+from rayaccel._variant import register
+from rayaccel.bvh._build_common import primitive_bounds
+from rayaccel.bvh.build_lbvh import check_leaf_costs, sorted_leaf_tree
+from rayaccel.bvh.layout import Bvh2
+from rayaccel.bvh.linked import linked_to_canonical
+from rayaccel.errors import InvalidInputError
+from rayaccel.scene.mesh import TriangleMesh
+
+
+@dataclass(frozen=True, slots=True)
+class PlocOptions:
+    """Options of :func:`build_ploc`.
+
+    Attributes
+    ----------
+    radius : int
+        Search radius ``r`` in the Morton-ordered cluster list (1..256; authors: 25).
+        Larger is closer to exact agglomerative clustering and slower (O(n·r)).
+    morton_bits : int
+        30 or 63.
+    max_leaf_size : int
+        Largest leaf the final SAH collapse may form (1..64).
+    traversal_cost, intersection_cost : float
+        SAH constants of the leaf collapse.
+    """
+
+    radius: int = 25
+    morton_bits: int = 63
+    max_leaf_size: int = 8
+    traversal_cost: float = 1.2
+    intersection_cost: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.radius <= 256:
+            raise InvalidInputError(f"radius: expected 1..256, got {self.radius}")
+        if self.morton_bits not in (30, 63):
+            raise InvalidInputError(f"morton_bits: expected 30 or 63, got {self.morton_bits}")
+        check_leaf_costs(self.max_leaf_size, self.traversal_cost, self.intersection_cost)
+
+
+@cpu_kernel(parallel=True)
+def _ploc_kernel(n_leaves, radius, left, right, lo, hi):
+    """Cluster leaves ``n−1 .. 2n−2`` (Morton order); fill inner nodes; return the root."""
+    n = n_leaves
+    clusters = np.empty(n, dtype=np.int32)
+    for i in range(n):
+        clusters[i] = n - 1 + i
+    box = np.empty((n, 6), dtype=np.float32)
+    nn = np.empty(n, dtype=np.int32)
+    rank = np.empty(n + 1, dtype=np.int32)
+    keep = np.empty(n + 1, dtype=np.int32)
+    swap = np.empty(n, dtype=np.int32)
+    c = n
+    next_inner = 0
+    while c > 1:
+        # Contiguous copy of the cluster boxes for the window scans.
+        for i in prange(c):
+            node = clusters[i]
+            for k in range(3):
+                box[i, k] = lo[node, k]
+                box[i, 3 + k] = hi[node, k]
+        # Nearest neighbour in the window by merged-box area; ties by pair indices.
+        for i in prange(c):
+            best = np.inf
+            best_j = -1
+            best_key = 1 << 30
+            for j in range(max(0, i - radius), min(c, i + radius + 1)):
+                if j == i:
+                    continue
+                ex = max(box[i, 3], box[j, 3]) - min(box[i, 0], box[j, 0])
+                ey = max(box[i, 4], box[j, 4]) - min(box[i, 1], box[j, 1])
+                ez = max(box[i, 5], box[j, 5]) - min(box[i, 2], box[j, 2])
+                d = ex * ey + ey * ez + ez * ex
+                # Ties prefer the partner i xor 1, then the nearest index: equal boxes
+                # (copies of one triangle) then merge pairwise and halve per iteration.
+                key = 0 if j == (i ^ 1) else 2 * abs(i - j) + (1 if j > i else 0)
+                if d < best or (d == best and key < best_key):
+                    best = d
+                    best_j = j
+                    best_key = key
+            nn[i] = best_j
+        # Mutual pairs merge at the lower index; ids from an exclusive prefix sum.
+        total = 0
+        for i in range(c):
+            rank[i] = total
+            if nn[nn[i]] == i and i < nn[i]:
+                total += 1
+        if total == 0:
+            # Cannot happen with a strict order on pairs; merge the first two to progress.
+            nn[0] = 1
+            nn[1] = 0
+            for i in range(c):
+                rank[i] = 0 if i == 0 else 1
+            total = 1
+        rank[c] = total
+        for i in prange(c):
+            j = nn[i]
+            if nn[j] == i and i < j and rank[i + 1] > rank[i]:
+                node = next_inner + rank[i]
+                a = clusters[i]
+                b = clusters[j]
+                left[node] = a
+                right[node] = b
+                for k in range(3):
+                    lo[node, k] = min(lo[a, k], lo[b, k])
+                    hi[node, k] = max(hi[a, k], hi[b, k])
+                swap[i] = node
+            else:
+                swap[i] = clusters[i]
+        next_inner += total
+        # Compact: drop the upper member of every merged pair, keep the order.
+        count = 0
+        for i in range(c):
+            keep[i] = count
+            j = nn[i]
+            if not (nn[j] == i and j < i and rank[j + 1] > rank[j]):
+                count += 1
+        keep[c] = count
+        for i in prange(c):
+            if keep[i + 1] > keep[i]:
+                clusters[keep[i]] = swap[i]
+        c = count
+    return clusters[0]
+
+
+def build_ploc_refs(
+    prim_lo: np.ndarray, prim_hi: np.ndarray, prim_id: np.ndarray, n_prims: int, opt: PlocOptions
+) -> Bvh2:
+    """Build a PLOC tree over reference boxes (``prim_id`` maps references to primitives)."""
+    n = prim_lo.shape[0]
+    _, tree = sorted_leaf_tree(prim_lo, prim_hi, opt.morton_bits)
+    tree = tree._replace(prim_index=np.ascontiguousarray(prim_id[tree.prim_index]))
+    root = 0
+    if n > 1:
+        root = int(_ploc_kernel(n, opt.radius, tree.left, tree.right, tree.lo, tree.hi))
+    return linked_to_canonical(
+        tree,
+        root,
+        n_prims,
+        collapse=True,
+        max_leaf_size=opt.max_leaf_size,
+        inner_cost=opt.traversal_cost,
+        prim_cost=opt.intersection_cost,
+    )
+
+
+@register(
+    "builder",
+    "bvh2.ploc",
+    options=PlocOptions,
+    summary="parallel locally-ordered clustering in a Morton-order window, SAH collapse",
+    reference="Meister & Bittner 2018, Parallel Locally-Ordered Clustering for BVH Construction",
+)
+def build_ploc(mesh: TriangleMesh, options: PlocOptions | None = None) -> Bvh2:
+    """Build a BVH by parallel locally-ordered clustering (see the module docstring).
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+    options : PlocOptions, optional
+
+    Returns
+    -------
+    Bvh2
+        Canonical tree; depth at most ``MAX_DEPTH``.
+    """
+    opt = options or PlocOptions()
+    prim_lo, prim_hi, _ = primitive_bounds(mesh.triangles())
+    ids = np.arange(mesh.n_triangles, dtype=np.int32)
+    return build_ploc_refs(prim_lo, prim_hi, ids, mesh.n_triangles, opt)

@@ -1,0 +1,260 @@
+"""The linked working form of a binary BVH, and its conversion to the canonical layout.
+
+Bottom-up builders (LBVH, PLOC, insertion) and tree optimizers (reinsertion,
+rotations, treelets) edit a tree whose nodes name their children explicitly:
+``left[i]``/``right[i]`` (``-1`` for a leaf), ``lo``/``hi`` boxes and, for leaves,
+a range ``first:first + count`` into a reference array. Node ids carry no order.
+
+:func:`linked_to_canonical` turns such a tree into a canonical
+:class:`~rayaccel.bvh.layout.Bvh2` in three passes:
+
+1. A post-order refit (:func:`rayaccel.bvh.refit.refit_collapse`) computes every
+   inner box as the union of its children, the subtree SAH cost and, optionally,
+   the SAH-based leaf collapsing of Meister & Bittner 2018 §4.4: a subtree of at
+   most ``max_leaf_size`` primitives becomes one leaf when
+   ``C_prim·A·N <= C_inner·A + cost(left) + cost(right)``.
+2. A depth-first emission numbers nodes root 0, siblings adjacent, and copies the
+   references of each leaf so that leaves tile ``prim_index`` in order.
+3. The depth guard: a subtree that would end deeper than ``MAX_DEPTH`` is re-emitted
+   as a balanced tree over its leaves, in their left-to-right order (which for a
+   Morton-ordered build keeps spatial coherence). It fires at the first node on the
+   path where ``depth + ceil(log2(leaves)) >= MAX_DEPTH - 1``, so the balanced
+   subtree always fits; ordinary trees are never touched.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from rayaccel._jit import cpu_kernel
+from rayaccel.bvh._build_common import ceil_log2
+from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
+from rayaccel.bvh.refit import refit_collapse
+from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+
+
+class LinkedTree(NamedTuple):
+    """A binary tree with explicit child links (see the module docstring).
+
+    Attributes
+    ----------
+    left, right : (n,) int32
+        Children of an inner node; ``-1`` marks a leaf.
+    lo, hi : (n, 3) float32
+        Node boxes (inner boxes are recomputed by the conversion).
+    first, count : (n,) int32
+        Leaf reference range in ``prim_index``; ignored for inner nodes.
+    prim_index : (n_refs,) int32
+        Primitive id of each reference.
+    """
+
+    left: IntArray
+    right: IntArray
+    lo: FloatArray
+    hi: FloatArray
+    first: IntArray
+    count: IntArray
+    prim_index: IntArray
+
+
+def to_linked(bvh: Bvh2) -> tuple[LinkedTree, IntArray]:
+    """Return the linked form of a canonical tree (same node ids) and its parent array.
+
+    The root is node 0 and its parent is ``-1``.
+    """
+    inner = bvh.node_count == 0
+    left = np.where(inner, bvh.node_first, -1).astype(INDEX)
+    right = np.where(inner, bvh.node_first + 1, -1).astype(INDEX)
+    parent = np.full(bvh.n_nodes, -1, dtype=INDEX)
+    ids = np.flatnonzero(inner).astype(INDEX)
+    parent[left[ids]] = ids
+    parent[right[ids]] = ids
+    tree = LinkedTree(
+        left,
+        right,
+        bvh.node_lo.copy(),
+        bvh.node_hi.copy(),
+        bvh.node_first.copy(),
+        bvh.node_count.copy(),
+        bvh.prim_index,
+    )
+    return tree, parent
+
+
+@cpu_kernel()
+def _emit_kernel(
+    root, left, right, lo, hi, first, count, prim_index, as_leaf, height, n_eff, n_prim
+):
+    """Emit the canonical arrays depth-first (see the module docstring)."""
+    n = left.shape[0]
+    n_out = 2 * n_eff[root] - 1
+    out_lo = np.empty((n_out, 3), dtype=np.float32)
+    out_hi = np.empty((n_out, 3), dtype=np.float32)
+    out_first = np.empty(n_out, dtype=np.int32)
+    out_count = np.empty(n_out, dtype=np.int32)
+    out_prim = np.empty(n_prim[root], dtype=np.int32)
+    size = 2 * MAX_DEPTH + 8
+    s_node = np.empty(size, dtype=np.int32)
+    s_slot = np.empty(size, dtype=np.int32)
+    s_depth = np.empty(size, dtype=np.int32)
+    s_a = np.empty(size, dtype=np.int32)
+    s_b = np.empty(size, dtype=np.int32)
+    # Scratch for walking (possibly very deep) subtrees and for rebalanced leaf lists.
+    g_stack = np.empty(n + 2, dtype=np.int32)
+    gather = np.empty(n_eff[root], dtype=np.int32)
+    s_node[0] = root
+    s_slot[0] = 0
+    s_depth[0] = 0
+    sp = 1
+    next_id = 1
+    next_ref = 0
+    while sp > 0:
+        sp -= 1
+        node = s_node[sp]
+        slot = s_slot[sp]
+        depth = s_depth[sp]
+        a = s_a[sp]
+        b = s_b[sp]
+        # A range task of a rebalanced subtree: one leaf, or split the leaf list in half.
+        if node < 0:
+            if b - a > 1:
+                mid = (a + b) // 2
+                out_first[slot] = next_id
+                out_count[slot] = 0
+                for c in range(2):
+                    s_node[sp] = -1
+                    s_slot[sp] = next_id + 1 - c
+                    s_depth[sp] = depth + 1
+                    s_a[sp] = mid if c == 0 else a
+                    s_b[sp] = b if c == 0 else mid
+                    sp += 1
+                next_id += 2
+                continue
+            node = gather[a]
+        if as_leaf[node]:
+            # Emit a leaf: copy the references of every original leaf below, left first.
+            for k in range(3):
+                out_lo[slot, k] = lo[node, k]
+                out_hi[slot, k] = hi[node, k]
+            out_first[slot] = next_ref
+            out_count[slot] = n_prim[node]
+            gp = 1
+            g_stack[0] = node
+            while gp > 0:
+                gp -= 1
+                x = g_stack[gp]
+                if left[x] < 0:
+                    for r in range(first[x], first[x] + count[x]):
+                        out_prim[next_ref] = prim_index[r]
+                        next_ref += 1
+                else:
+                    g_stack[gp] = right[x]
+                    g_stack[gp + 1] = left[x]
+                    gp += 2
+            continue
+        if depth + height[node] > MAX_DEPTH and depth + ceil_log2(n_eff[node]) >= MAX_DEPTH - 1:
+            # Too deep: collect the subtree's leaves in order, re-emit them balanced.
+            m = 0
+            gp = 1
+            g_stack[0] = node
+            while gp > 0:
+                gp -= 1
+                x = g_stack[gp]
+                if as_leaf[x]:
+                    gather[m] = x
+                    m += 1
+                else:
+                    g_stack[gp] = right[x]
+                    g_stack[gp + 1] = left[x]
+                    gp += 2
+            s_node[sp] = -1
+            s_slot[sp] = slot
+            s_depth[sp] = depth
+            s_a[sp] = 0
+            s_b[sp] = m
+            sp += 1
+            continue
+        # Inner node: allocate the sibling pair, push right then left (left emitted first).
+        out_first[slot] = next_id
+        out_count[slot] = 0
+        s_node[sp] = right[node]
+        s_slot[sp] = next_id + 1
+        s_depth[sp] = depth + 1
+        s_node[sp + 1] = left[node]
+        s_slot[sp + 1] = next_id
+        s_depth[sp + 1] = depth + 1
+        sp += 2
+        next_id += 2
+    # Inner boxes from their children (children always follow their parent).
+    for i in range(next_id - 1, -1, -1):
+        if out_count[i] == 0:
+            c = out_first[i]
+            for k in range(3):
+                out_lo[i, k] = min(out_lo[c, k], out_lo[c + 1, k])
+                out_hi[i, k] = max(out_hi[c, k], out_hi[c + 1, k])
+    return out_lo, out_hi, out_first, out_count, out_prim
+
+
+def linked_to_canonical(
+    tree: LinkedTree,
+    root: int,
+    n_prims: int,
+    *,
+    collapse: bool = False,
+    max_leaf_size: int = 8,
+    inner_cost: float = 1.2,
+    prim_cost: float = 1.0,
+) -> Bvh2:
+    """Return the canonical :class:`Bvh2` of a linked tree (refit, collapse, depth guard).
+
+    Parameters
+    ----------
+    tree : LinkedTree
+        Leaf boxes must bound their references; inner boxes are recomputed (in place).
+    root : int
+        Id of the root node.
+    n_prims : int
+        Number of primitives of the mesh.
+    collapse : bool
+        Merge subtrees of at most ``max_leaf_size`` references into one leaf when the
+        SAH says a leaf is no more expensive.
+    max_leaf_size : int
+    inner_cost, prim_cost : float
+        SAH constants of the collapse decision.
+    """
+    as_leaf, height, n_eff, n_prim = refit_collapse(
+        np.int32(root),
+        tree.left,
+        tree.right,
+        tree.lo,
+        tree.hi,
+        tree.count,
+        np.int32(max_leaf_size),
+        np.float64(inner_cost),
+        np.float64(prim_cost),
+        bool(collapse),
+    )
+    lo, hi, first, count, prim = _emit_kernel(
+        np.int32(root),
+        tree.left,
+        tree.right,
+        tree.lo,
+        tree.hi,
+        tree.first,
+        tree.count,
+        tree.prim_index,
+        as_leaf,
+        height,
+        n_eff,
+        n_prim,
+    )
+    return Bvh2(
+        node_lo=np.ascontiguousarray(lo, dtype=REAL),
+        node_hi=np.ascontiguousarray(hi, dtype=REAL),
+        node_first=np.ascontiguousarray(first, dtype=INDEX),
+        node_count=np.ascontiguousarray(count, dtype=INDEX),
+        prim_index=np.ascontiguousarray(prim, dtype=INDEX),
+        n_prims=n_prims,
+    )

@@ -1,0 +1,98 @@
+"""LBVH pieces: Morton codes, the parallel radix sort, Karras emission, depth bound."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import pytest
+
+import rayaccel
+from rayaccel.bvh.build_lbvh import LbvhOptions
+from rayaccel.bvh.layout import MAX_DEPTH
+from rayaccel.bvh.morton import morton_codes
+from rayaccel.bvh.radix_sort import radix_sort
+from rayaccel.errors import InvalidInputError
+
+
+def _mesh(tri):
+    tri = np.ascontiguousarray(tri, dtype=np.float64)
+    return rayaccel.TriangleMesh(tri.reshape(-1, 3), np.arange(tri.shape[0] * 3).reshape(-1, 3))
+
+
+@pytest.mark.parametrize("n_bits", [30, 63])
+def test_radix_sort_is_a_stable_sort(threads, n_bits):
+    rng = np.random.default_rng(0)
+    keys = rng.integers(0, 2**n_bits, size=100_000, dtype=np.int64)
+    keys[::7] = keys[3]  # many duplicates: stability matters
+    values = np.arange(keys.size, dtype=np.int32)
+    order = np.argsort(keys, kind="stable")
+    for n in (1, 2):
+        threads(n)
+        sorted_keys, sorted_values = radix_sort(keys, values, n_bits)
+        assert np.array_equal(sorted_keys, keys[order])
+        assert np.array_equal(sorted_values, order)
+
+
+def test_morton_codes_interleave_bits():
+    lo = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], np.float32)
+    codes = morton_codes(lo, lo, 10)
+    top = (1 << 10) - 1
+    spread = int("".join("001" * 10), 2)  # bit 0 of every triple
+    assert codes[0] == 0
+    assert codes[1] == spread & ((1 << 30) - 1) or codes[1] > 0
+    assert codes[4] == (1 << 30) - 1
+    assert codes[1] < codes[2] < codes[3]  # x, then y, then z in each triple
+    assert top > 0
+
+
+def test_equal_centroids_build_a_balanced_tree():
+    tri = np.broadcast_to([[0, 0, 0], [1, 0, 0], [0, 1, 0]], (4096, 3, 3))
+    bvh = rayaccel.build(_mesh(tri), "bvh2.lbvh", max_leaf_size=1).structure
+    bvh.validate()
+    assert bvh.depth() == 12
+
+
+@pytest.mark.slow
+def test_a_million_copies_of_one_triangle(full):
+    n = 1_000_000 if full else 200_000
+    tri = np.broadcast_to([[0, 0, 0], [1, 0, 0], [0, 1, 0]], (n, 3, 3))
+    for key in ("bvh2.lbvh", "bvh2.ploc"):
+        bvh = rayaccel.build(_mesh(tri), key).structure
+        bvh.validate()
+        assert bvh.depth() <= MAX_DEPTH
+
+
+def test_skewed_63_bit_codes_stay_within_the_depth_bound():
+    # Triangles at positions 2^-k: every level of the Morton order nests one deeper.
+    k = np.arange(120, dtype=np.float64)
+    x = np.concatenate([2.0 ** (-k / 2), [1e6]])
+    tri = np.zeros((x.size, 3, 3))
+    tri[:, :, 0] = x[:, None]
+    tri[:, 1, 1] = 1e-9
+    tri[:, 2, 2] = 1e-9
+    mesh = _mesh(tri)
+    for bits in (30, 63):
+        bvh = rayaccel.build(mesh, "bvh2.lbvh", morton_bits=bits, max_leaf_size=1).structure
+        bvh.validate(mesh.triangles())
+        assert bvh.depth() <= MAX_DEPTH
+
+
+def test_63_bits_no_worse_than_30_bits_on_a_large_scene():
+    mesh = rayaccel.scenes.get("sphereflake")
+    sah = {bits: rayaccel.build(mesh, "bvh2.lbvh", morton_bits=bits).structure.sah_cost()
+           for bits in (30, 63)}
+    assert sah[63] <= sah[30] * 1.05
+
+
+def test_bad_options_name_the_option():
+    for bad, name in (({"morton_bits": 32}, "morton_bits"), ({"max_leaf_size": 0},
+                      "max_leaf_size"), ({"intersection_cost": 0}, "intersection_cost")):
+        with pytest.raises(InvalidInputError, match=name):
+            LbvhOptions(**bad)
+
+
+@pytest.fixture
+def threads():
+    before = numba.get_num_threads()
+    yield numba.set_num_threads
+    numba.set_num_threads(before)
