@@ -54,6 +54,29 @@ def pytest_configure(config: pytest.Config) -> None:
         settings.load_profile("full")
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list) -> None:
+    """Without ``--full``, deselect the ``cross`` cases (see ``test_conformance.py``)."""
+    if config.getoption("--full"):
+        return
+    cross = [item for item in items if item.get_closest_marker("cross")]
+    if cross:
+        config.hook.pytest_deselected(items=cross)
+        items[:] = [item for item in items if not item.get_closest_marker("cross")]
+        config.stash[CROSS_DESELECTED] = len(cross)
+
+
+CROSS_DESELECTED = pytest.StashKey[int]()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    n = config.stash.get(CROSS_DESELECTED, 0)
+    if n:
+        terminalreporter.write_line(
+            f"{n} builder x traversal cases beyond the core pairs deselected; "
+            "run with --full for the whole cross product"
+        )
+
+
 @pytest.fixture(scope="session")
 def full(request: pytest.FixtureRequest) -> bool:
     """Whether ``--full`` was given."""

@@ -30,6 +30,28 @@ from rayaccel.scene.mesh import TriangleMesh
 
 QUERIES = {"closest": QUERY_CLOSEST, "any": QUERY_ANY}
 
+#: The core pairs: every builder with the reference traversal, every traversal on the
+#: default builder's tree. Other pairs carry the ``cross`` mark (run with ``--full``).
+CORE_BUILDER = "bvh2.binned_sah"
+CORE_TRAVERSAL = "bvh2.stack"
+
+
+def builder_traversal_pairs() -> list:
+    """``pytest.param(builder, traversal)`` for every registered builder and traversal of
+    its structure; pairs outside the core ones are marked ``cross``."""
+    import pytest
+
+    from rayaccel import registry
+
+    params = []
+    for builder in registry.variants("builder"):
+        for traversal in registry.keys("traversal", builder.structure):
+            core = builder.key == CORE_BUILDER or traversal == CORE_TRAVERSAL
+            marks = [] if core else [pytest.mark.cross]
+            params.append(pytest.param(builder.key, traversal, id=f"{builder.key}-{traversal}",
+                                       marks=marks))
+    return params
+
 # --------------------------------------------------------------------------------- oracles
 
 

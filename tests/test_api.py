@@ -191,8 +191,9 @@ def test_registry_enumeration():
     assert "bvh2.stack" in registry.keys("traversal")
     assert builders == sorted(builders)
     for v in registry.variants():
-        assert v.key.startswith(v.structure + ".")
-        assert v.role in ("builder", "traversal")
+        separator = "+" if v.role == "step" else "."
+        assert v.key.startswith(v.structure + separator)
+        assert v.role in ("builder", "traversal", "step")
         assert v.backend in ("cpu", "cuda")
         assert v.summary
         assert callable(v.func)

@@ -19,10 +19,7 @@ from rayaccel.errors import (
 )
 from rayaccel.rays.batch import RayBatch
 
-PAIRS = [
-    pytest.param(b.key, t, id=f"{b.key}-{t}")
-    for b in registry.variants("builder") for t in registry.keys("traversal", b.structure)
-]
+PAIRS = reference.builder_traversal_pairs()
 BUILDERS = [pytest.param(k, id=k) for k in registry.keys("builder")]
 
 VERTS = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], dtype=np.float64)

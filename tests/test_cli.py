@@ -21,7 +21,7 @@ def run(capsys, *args):
 def test_list_names_every_registered_variant_and_counter(capsys):
     code, out, _ = run(capsys, "list")
     assert code == 0
-    for key in registry.keys("builder") + registry.keys("traversal"):
+    for key in registry.keys("builder") + registry.keys("step") + registry.keys("traversal"):
         assert key in out
     for variant in registry.variants():
         assert variant.summary in out
@@ -37,6 +37,7 @@ def test_list_json(capsys):
     data = json.loads(out)
     assert [v["key"] for v in data["builder"]] == registry.keys("builder")
     assert [v["key"] for v in data["traversal"]] == registry.keys("traversal")
+    assert [v["key"] for v in data["step"]] == registry.keys("step")
     assert data["counters"] == list(COUNTER_NAMES)
     assert "cornell-box" in data["scenes"]
 

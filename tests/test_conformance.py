@@ -33,6 +33,45 @@ TRAVERSALS = _traversal_params()
 QUERIES = [pytest.param(q, id=q) for q in ("closest", "any")]
 SCENES = scene_params(marks_slow_files=False)
 
+#: The core pairs: every build key with the reference traversal, every traversal on
+#: the default builder's tree.
+CORE_BUILDER = reference.CORE_BUILDER
+CORE_TRAVERSAL = reference.CORE_TRAVERSAL
+
+
+def _pair_scene_params(cross_on_procedural: bool) -> list:
+    """``(builder, traversal, scene)`` cases: the core pairs everywhere, the other pairs
+    marked ``cross`` (run with ``--full``) except, when asked, on procedural scenes.
+
+    Traversal correctness depends on the tree only through its shape, which the
+    procedural scenes already vary over every builder; the file scenes add size.
+    """
+    params = []
+    for scene in SCENES:
+        name = scene.values[0]
+        file_scene = any(m.name == "scenes" for m in scene.marks)
+        for pair in TRAVERSALS:
+            builder, traversal = pair.values
+            core = builder == CORE_BUILDER or traversal == CORE_TRAVERSAL
+            marks = list(scene.marks)
+            if not core and (file_scene or not cross_on_procedural):
+                marks.append(pytest.mark.cross)
+            params.append(
+                pytest.param(builder, traversal, name, id=f"{pair.id}-{name}", marks=marks)
+            )
+    return params
+
+
+#: The whole cross product on procedural scenes (closest and any hit against the oracle).
+PAIR_SCENES_CROSS = _pair_scene_params(cross_on_procedural=True)
+PAIR_SCENES = _pair_scene_params(cross_on_procedural=False)
+#: Every pair, the non-core ones marked ``cross`` (for the big file scenes).
+PAIRS_CORE_FIRST = [
+    p if CORE_BUILDER in p.values or CORE_TRAVERSAL in p.values
+    else pytest.param(*p.values, id=p.id, marks=[pytest.mark.cross])
+    for p in TRAVERSALS
+]
+
 
 def test_registry_is_not_empty():
     assert registry.keys("builder"), "no builder registered"
@@ -52,9 +91,8 @@ def test_builder_validates(scenes_cache, builder, scene):
     assert info["builder"] == builder
 
 
-@pytest.mark.parametrize("scene", SCENES)
 @pytest.mark.parametrize("query", QUERIES)
-@pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
+@pytest.mark.parametrize(("builder", "traversal", "scene"), PAIR_SCENES_CROSS)
 def test_matches_oracle(scenes_cache, builder, traversal, query, scene):
     accel = scenes_cache.accel(builder, scene)
     rays = scenes_cache.ray_set(scene)
@@ -71,8 +109,7 @@ def test_matches_oracle(scenes_cache, builder, traversal, query, scene):
         assert np.array_equal(occluded, ref.prim >= 0)
 
 
-@pytest.mark.parametrize("scene", SCENES)
-@pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
+@pytest.mark.parametrize(("builder", "traversal", "scene"), PAIR_SCENES)
 def test_stats_variant_identical(scenes_cache, builder, traversal, scene):
     accel = scenes_cache.accel(builder, scene)
     rays = scenes_cache.ray_set(scene)
@@ -97,8 +134,7 @@ def _hit_rows(scenes_cache, builder, scene):
     return accel, rays.subset(rows), ref.t[rows]
 
 
-@pytest.mark.parametrize("scene", SCENES)
-@pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
+@pytest.mark.parametrize(("builder", "traversal", "scene"), PAIR_SCENES)
 def test_interval_excludes_hits_just_outside(scenes_cache, builder, traversal, scene):
     """With ``tmax`` one ulp below the closest hit, that hit is not reported."""
     accel, rays, t = _hit_rows(scenes_cache, builder, scene)
@@ -110,8 +146,7 @@ def test_interval_excludes_hits_just_outside(scenes_cache, builder, traversal, s
     assert np.all(hits.t[hits.hit] <= below[hits.hit])
 
 
-@pytest.mark.parametrize("scene", SCENES)
-@pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
+@pytest.mark.parametrize(("builder", "traversal", "scene"), PAIR_SCENES)
 def test_interval_tmin_inclusive(scenes_cache, builder, traversal, scene):
     """A hit at exactly ``tmin`` is accepted."""
     accel, rays, t = _hit_rows(scenes_cache, builder, scene)
@@ -120,8 +155,7 @@ def test_interval_tmin_inclusive(scenes_cache, builder, traversal, scene):
     assert missed.size == 0, f"{missed.size}/{t.size} hits lost with tmin = t"
 
 
-@pytest.mark.parametrize("scene", SCENES)
-@pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
+@pytest.mark.parametrize(("builder", "traversal", "scene"), PAIR_SCENES)
 def test_interval_tmax_inclusive(scenes_cache, builder, traversal, scene):
     """A hit at exactly ``tmax`` is accepted, by closest-hit and any-hit queries."""
     accel, rays, t = _hit_rows(scenes_cache, builder, scene)
@@ -155,7 +189,7 @@ def test_tmax_inclusive_single_triangle(traversal):
 @pytest.mark.slow
 @pytest.mark.scenes
 @pytest.mark.parametrize("scene", ["stanford-bunny", "sponza_dabrovic", "kitchen"])
-@pytest.mark.parametrize(("builder", "traversal"), TRAVERSALS)
+@pytest.mark.parametrize(("builder", "traversal"), PAIRS_CORE_FIRST)
 def test_matches_oracle_more_rays(scenes_cache, full, builder, traversal, scene):
     """More camera and diffuse rays on the large scenes (x10 with ``--full``)."""
     from rayaccel.rays.bounce import diffuse_rays

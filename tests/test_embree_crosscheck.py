@@ -21,7 +21,6 @@ import numpy as np
 import pytest
 
 import reference
-from rayaccel import registry
 from rayaccel.rays.bounce import diffuse_rays
 from rayaccel.rays.camera import frame_bounds
 
@@ -42,10 +41,7 @@ SCENES = [
     *(pytest.param(name, id=name, marks=pytest.mark.scenes)
       for name in ("CornellBox-Original", "stanford-bunny", "sponza_dabrovic", "staircase")),
 ]
-PAIRS = [
-    pytest.param(b.key, t, id=f"{b.key}-{t}")
-    for b in registry.variants("builder") for t in registry.keys("traversal", b.structure)
-]
+PAIRS = reference.builder_traversal_pairs()
 
 
 def _embree_closest(triangles: np.ndarray, rays) -> tuple[np.ndarray, np.ndarray]:

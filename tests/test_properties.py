@@ -19,13 +19,9 @@ from hypothesis import strategies as st
 
 import rayaccel
 import reference
-from rayaccel import registry
 from rayaccel.rays.batch import RayBatch
 
-PAIRS = [
-    pytest.param(b.key, t, id=f"{b.key}-{t}")
-    for b in registry.variants("builder") for t in registry.keys("traversal", b.structure)
-]
+PAIRS = reference.builder_traversal_pairs()
 
 LATTICE = (-2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
 coordinate = st.one_of(

@@ -21,10 +21,7 @@ from rayaccel import registry
 from rayaccel.rays.batch import RayBatch
 
 BUILDERS = [pytest.param(k, id=k) for k in registry.keys("builder")]
-PAIRS = [
-    pytest.param(b.key, t, id=f"{b.key}-{t}")
-    for b in registry.variants("builder") for t in registry.keys("traversal", b.structure)
-]
+PAIRS = reference.builder_traversal_pairs()
 needs_two_threads = pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2,
                                        reason="needs at least 2 numba threads")
 

@@ -15,13 +15,9 @@ import pytest
 
 import rayaccel
 import reference
-from rayaccel import registry
 from rayaccel.rays.batch import RayBatch
 
-PAIRS = [
-    pytest.param(b.key, t, id=f"{b.key}-{t}")
-    for b in registry.variants("builder") for t in registry.keys("traversal", b.structure)
-]
+PAIRS = reference.builder_traversal_pairs()
 
 
 def _closed_meshes() -> dict[str, rayaccel.TriangleMesh]:

@@ -147,7 +147,7 @@ def _out(text: str = "") -> None:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    """Print every registered builder and traversal, the counters, peers and scenes."""
+    """Print every registered builder, build step and traversal, the counters, peers, scenes."""
     from rayaccel import registry
     from rayaccel.bench.peers import PEERS
     from rayaccel.counters import COUNTER_NAMES
@@ -162,7 +162,7 @@ def cmd_list(args: argparse.Namespace) -> int:
                  "options": _option_defaults(v.options)}
                 for v in registry.variants(role)
             ]
-            for role in ("builder", "traversal")
+            for role in ("builder", "step", "traversal")
         }  # fmt: skip
         data["configurations"] = registry.configurations()  # type: ignore[assignment]
         data["counters"] = list(COUNTER_NAMES)  # type: ignore[assignment]
@@ -170,7 +170,12 @@ def cmd_list(args: argparse.Namespace) -> int:
         data["scenes"] = catalog.names()  # type: ignore[assignment]
         _out(json.dumps(data, indent=2, default=str))
         return 0
-    for role, title in (("builder", "Builders"), ("traversal", "Traversals")):
+    roles = (
+        ("builder", "Builders"),
+        ("step", "Build steps (chain as BUILDER+STEP)"),
+        ("traversal", "Traversals"),
+    )
+    for role, title in roles:
         variants = registry.variants(role)
         _out(f"{title} ({len(variants)}):")
         width = max((len(v.key) for v in variants), default=0)

@@ -38,8 +38,8 @@ def test_bench_without_peers_writes_expected_records(capsys, tmp_path):
     records = report.read_jsonl(path)
     traces = [r for r in records if r["record"] == "trace"]
     systems = {
-        f"{b}+{t}" for b in registry.keys("builder")
-        for t in registry.keys("traversal", registry.get(b).structure)
+        f"{b}+{t}" for b in registry.build_keys()
+        for t in registry.keys("traversal", registry.get_chain(b)[0].structure)
     }  # fmt: skip
     assert {r["system"] for r in traces} == systems
     assert {(r["system"], r["ray_type"]) for r in traces} == {

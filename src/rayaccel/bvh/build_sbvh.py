@@ -567,16 +567,17 @@ def _build_frontier(
     """Build every frontier subtree concurrently into its reserved blocks."""
     for i in prange(tasks.shape[0]):
         no_tasks = np.empty((1, 5), dtype=np.int32)
+        # int64 arguments, as in the serial top-phase call: one compiled signature.
         _build_sbvh_task(
             refs,
             tri,
-            tasks[i, 1],
-            tasks[i, 2],
-            tasks[i, 3],
-            tasks[i, 4],
-            tasks[i, 0],
-            task_base[i],
-            0,
+            np.int64(tasks[i, 1]),
+            np.int64(tasks[i, 2]),
+            np.int64(tasks[i, 3]),
+            np.int64(tasks[i, 4]),
+            np.int64(tasks[i, 0]),
+            np.int64(task_base[i]),
+            np.int64(0),
             root_area,
             alpha,
             n_bins,

@@ -117,7 +117,7 @@ def _place(keys, values, n_table, n_disp, table, disp):
             # One key: the first free slot at or after its base, cyclically.
             slot = _find_free(next_free, base[0])
             if slot == n_table:
-                slot = _find_free(next_free, 0)
+                slot = _find_free(next_free, np.int64(0))
             if slot < n_table:
                 delta = (slot - base[0]) % n_table
         else:
