@@ -1,11 +1,12 @@
-"""Inline building blocks shared by the stackless BVH traversals.
+"""Inline building blocks shared by every ``bvh2`` traversal kernel.
 
 Every stackless traversal of ``bvh2`` must return exactly the hits of the ordered
 stack traversal (``bvh2.stack``, :mod:`rayaccel.bvh.traverse_stack`). They therefore
-share its per-ray set-up (reciprocal direction, near/far plane offsets, watertight
-shear constants, the culling pad of :mod:`rayaccel.kernels.aabb`), its two-child box
-test on a packed 64-byte row, its child order (nearer entry first, ties to child 0)
-and its leaf loop (strict ``t < t_hit`` acceptance). Keeping them here, inlined into
+share with it, through these helpers, the per-ray set-up (reciprocal direction,
+near/far plane offsets, watertight shear constants, the culling pad of
+:mod:`rayaccel.kernels.aabb`), the two-child box test on a packed 64-byte row and the
+leaf loop (strict ``t < t_hit`` acceptance); the child order (nearer entry first, ties
+to child 0) is the same rule in each kernel. Keeping them here, inlined into
 each kernel, guarantees the arithmetic is literally the same.
 
 These helpers are CPU traversal glue (they call other inlined helpers), not leaf
@@ -21,7 +22,7 @@ import numpy as np
 from rayaccel._jit import cpu_inline
 from rayaccel.bvh.layout import MAX_DEPTH, STACK_SIZE
 from rayaccel.errors import TraversalOverflowError
-from rayaccel.kernels.aabb import culling_pad, ray_box_entry
+from rayaccel.kernels.aabb import culling_pad, ray_box_entry, ray_box_exit
 from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup
 
 INF32 = np.float32(np.inf)
@@ -92,17 +93,9 @@ def box_entry_py(box, row, col, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, 
 
 def box_exit_py(box, row, col, ox, oy, oz, ix, iy, iz, fx, fy, fz):
     """Exit distance (2-ulp enlarged, NaN ignored) of the box at ``box[row, col:col + 6]``."""
-    t1x = (box[row, col + fx] - ox) * ix
-    t1y = (box[row, col + fy] - oy) * iy
-    t1z = (box[row, col + fz] - oz) * iz
-    leave = INF32
-    if t1x < leave:
-        leave = t1x
-    if t1y < leave:
-        leave = t1y
-    if t1z < leave:
-        leave = t1z
-    return leave + abs(leave) * np.float32(2.0**-22)
+    return ray_box_exit(
+        ox, oy, oz, ix, iy, iz, box[row, col + fx], box[row, col + fy], box[row, col + fz]
+    )
 
 
 def intersect_leaf_py(

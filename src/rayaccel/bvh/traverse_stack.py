@@ -43,11 +43,10 @@ from rayaccel.bvh.layout import (
     PackedBvh2,
     pack_bvh2,
 )
+from rayaccel.bvh.traversal_steps import box_entry, intersect_leaf, ray_prologue
 from rayaccel.config import parallel_section
 from rayaccel.counters import Counter, counters_to_dict, empty_counters
 from rayaccel.errors import InvalidInputError, TraversalOverflowError
-from rayaccel.kernels.aabb import culling_pad, ray_box_entry
-from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -56,7 +55,6 @@ QUERY_ANY = 1
 #: Rays per parallel work item (one stack allocation each).
 RAY_CHUNK = 64
 INF32 = np.float32(np.inf)
-ONE32 = np.float32(1.0)
 ZERO32 = np.float32(0.0)
 QUERIES = {"closest": QUERY_CLOSEST, "any": QUERY_ANY}
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
@@ -97,67 +95,25 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                 n_prim = 0
                 peak = 0
                 n_bytes = 0
-                ox = origin[r, 0]
-                oy = origin[r, 1]
-                oz = origin[r, 2]
-                dx = direction[r, 0]
-                dy = direction[r, 1]
-                dz = direction[r, 2]
-                t_lo = tmin[r]
-                # Inclusive tmax: the triangle test's upper bound is strict.
-                t_hit = np.nextafter(tmax[r], INF32)
+                # Per-ray constants, shared with every stackless traversal.
+                (
+                    valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+                ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
                 best_prim = -1
                 # Degenerate rays (zero or non-finite direction or origin, empty interval) miss.
-                valid = (
-                    t_lo <= tmax[r]
-                    and not (dx == 0 and dy == 0 and dz == 0)
-                    and np.isfinite(dx)
-                    and np.isfinite(dy)
-                    and np.isfinite(dz)
-                    and np.isfinite(ox)
-                    and np.isfinite(oy)
-                    and np.isfinite(oz)
-                )
                 if valid:
-                    # Per-ray constants: reciprocal direction and near/far plane offsets.
-                    ix = ONE32 / dx
-                    iy = ONE32 / dy
-                    iz = ONE32 / dz
-                    nx = 0 if ix >= 0 else 1
-                    ny = 2 if iy >= 0 else 3
-                    nz = 4 if iz >= 0 else 5
-                    fx = 1 - nx
-                    fy = 5 - ny
-                    fz = 9 - nz
-                    kx, ky, kz, Sx, Sy, Sz = ray_triangle_setup(dx, dy, dz)
-                    okx = origin[r, kx]
-                    oky = origin[r, ky]
-                    okz = origin[r, kz]
                     best_u = ZERO32
                     best_v = ZERO32
                     # Boxes are culled against a slightly widened interval (aabb.py).
-                    rb = bvh.root_box
-                    pad = culling_pad(okz, Sz, rb[2 * kz], rb[2 * kz + 1])
                     box_lo = t_lo - pad
                     box_hi = t_hit + pad
                     sp = 0
                     # The root box is tested once up front.
-                    entry = ray_box_entry(
-                        ox,
-                        oy,
-                        oz,
-                        ix,
-                        iy,
-                        iz,
-                        rb[nx],
-                        rb[ny],
-                        rb[nz],
-                        rb[fx],
-                        rb[fy],
-                        rb[fz],
-                        box_lo,
-                        box_hi,
-                    )
+                    entry = box_entry(
+                        bvh.root_box.reshape((1, 6)), 0, 0, ox, oy, oz, ix, iy, iz,
+                        nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+                    )  # fmt: skip
                     if with_stats:
                         n_box += 1
                     node = bvh.root_ref[0]
@@ -175,38 +131,14 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                 prefetch_row(box, c0)
                             if c1 >= 0:
                                 prefetch_row(box, c1)
-                            t0 = ray_box_entry(
-                                ox,
-                                oy,
-                                oz,
-                                ix,
-                                iy,
-                                iz,
-                                box[node, nx],
-                                box[node, ny],
-                                box[node, nz],
-                                box[node, fx],
-                                box[node, fy],
-                                box[node, fz],
-                                box_lo,
-                                box_hi,
-                            )
-                            t1 = ray_box_entry(
-                                ox,
-                                oy,
-                                oz,
-                                ix,
-                                iy,
-                                iz,
-                                box[node, 6 + nx],
-                                box[node, 6 + ny],
-                                box[node, 6 + nz],
-                                box[node, 6 + fx],
-                                box[node, 6 + fy],
-                                box[node, 6 + fz],
-                                box_lo,
-                                box_hi,
-                            )
+                            t0 = box_entry(
+                                box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                                box_lo, box_hi,
+                            )  # fmt: skip
+                            t1 = box_entry(
+                                box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                                box_lo, box_hi,
+                            )  # fmt: skip
                             if with_stats:
                                 n_box += 2
                                 n_bytes += PACKED_ROW_BYTES
@@ -238,20 +170,14 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                             last = first + bvh.leaf_count[leaf]
                             if with_stats:
                                 n_bytes += LEAF_BYTES + _PRIM_BYTES * (last - first)
-                            for i in range(first, last):
-                                t, u, v = ray_triangle(
-                                    bvh.tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit
-                                )
-                                if with_stats:
-                                    n_prim += 1
-                                if t < t_hit:
-                                    t_hit = t
-                                    box_hi = t + pad
-                                    best_prim = bvh.tri_prim[i]
-                                    best_u = u
-                                    best_v = v
-                                    if query == QUERY_ANY:
-                                        break
+                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                                query == QUERY_ANY,
+                            )  # fmt: skip
+                            box_hi = t_hit + pad
+                            if with_stats:
+                                n_prim += tested
                             if query == QUERY_ANY and best_prim >= 0:
                                 break
                         # Pop the next entry still in front of the closest hit.

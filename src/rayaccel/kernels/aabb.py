@@ -110,5 +110,22 @@ def ray_box_entry_py(
     return INF
 
 
+def ray_box_exit_py(ox, oy, oz, ix, iy, iz, far_x, far_y, far_z):
+    """Return the distance at which the ray leaves the box: the nearest far plane (NaN
+    ignored), enlarged by 2 ulp exactly as in :func:`ray_box_entry_py`."""
+    t1x = (far_x - ox) * ix
+    t1y = (far_y - oy) * iy
+    t1z = (far_z - oz) * iz
+    leave = INF
+    if t1x < leave:
+        leave = t1x
+    if t1y < leave:
+        leave = t1y
+    if t1z < leave:
+        leave = t1z
+    return leave + abs(leave) * TWO_ULP
+
+
 ray_box_entry = cpu_inline(ray_box_entry_py)
+ray_box_exit = cpu_inline(ray_box_exit_py)
 culling_pad = cpu_inline(culling_pad_py)
