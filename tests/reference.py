@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
+from rayaccel.bvh.layout import Bvh2
 from rayaccel.counters import COUNTER_NAMES
 from rayaccel.kernels.brute_force import QUERY_ANY, QUERY_CLOSEST, brute_force_trace
 from rayaccel.kernels.triangle import (
@@ -48,9 +49,11 @@ def builder_traversal_pairs() -> list:
         for traversal in registry.keys("traversal", builder.structure):
             core = builder.key == CORE_BUILDER or traversal == CORE_TRAVERSAL
             marks = [] if core else [pytest.mark.cross]
-            params.append(pytest.param(builder.key, traversal, id=f"{builder.key}-{traversal}",
-                                       marks=marks))
+            params.append(
+                pytest.param(builder.key, traversal, id=f"{builder.key}-{traversal}", marks=marks)
+            )
     return params
+
 
 # --------------------------------------------------------------------------------- oracles
 
@@ -82,8 +85,21 @@ def _eval_prims_kernel(tri, origin, direction, tmin, tmax, prim, out_t, out_u, o
             continue
         kx, ky, kz, Sx, Sy, Sz = ray_triangle_setup(dx, dy, dz)
         upper = np.nextafter(tmax[r], np.float32(np.inf))
-        t, u, v = ray_triangle(tri, p, origin[r, kx], origin[r, ky], origin[r, kz],
-                               kx, ky, kz, Sx, Sy, Sz, tmin[r], upper)
+        t, u, v = ray_triangle(
+            tri,
+            p,
+            origin[r, kx],
+            origin[r, ky],
+            origin[r, kz],
+            kx,
+            ky,
+            kz,
+            Sx,
+            Sy,
+            Sz,
+            tmin[r],
+            upper,
+        )
         out_t[r] = t
         out_u[r] = u
         out_v[r] = v
@@ -114,8 +130,7 @@ def python_trace(tri: np.ndarray, rays: RayBatch) -> HitBatch:
         kx, ky, kz, Sx, Sy, Sz = ray_triangle_setup_py(*d)
         best = np.nextafter(hi, f32(np.inf))
         for p in range(tri.shape[0]):
-            t, u, v = ray_triangle_py(tri, p, o[kx], o[ky], o[kz], kx, ky, kz, Sx, Sy, Sz,
-                                      lo, best)
+            t, u, v = ray_triangle_py(tri, p, o[kx], o[ky], o[kz], kx, ky, kz, Sx, Sy, Sz, lo, best)
             if t < best:
                 best = t
                 out.t[r], out.prim[r], out.u[r], out.v[r] = t, p, u, v
@@ -182,8 +197,9 @@ class Agreement:
 NEAR_TIE_ULPS = 16
 
 
-def assert_closest_matches(tri: np.ndarray, rays: RayBatch, ours: HitBatch,
-                           ref: HitBatch, label: str = "") -> Agreement:
+def assert_closest_matches(
+    tri: np.ndarray, rays: RayBatch, ours: HitBatch, ref: HitBatch, label: str = ""
+) -> Agreement:
     """Assert a closest-hit result equals the oracle's, allowing only (near-)ties.
 
     Same hit mask; on a miss ``t = inf, prim = -1, u = v = 0``; on the oracle's
@@ -240,8 +256,9 @@ def assert_closest_matches(tri: np.ndarray, rays: RayBatch, ours: HitBatch,
     return Agreement(rays.n_rays, int(hit.sum()), int(ties.size) - n_near, n_near)
 
 
-def assert_any_matches(tri: np.ndarray, rays: RayBatch, ours: HitBatch,
-                       ref_closest: HitBatch, label: str = "") -> None:
+def assert_any_matches(
+    tri: np.ndarray, rays: RayBatch, ours: HitBatch, ref_closest: HitBatch, label: str = ""
+) -> None:
     """Assert an any-hit result: same hit mask as the closest hit, and a genuine hit."""
     where = f" [{label}]" if label else ""
     hit = ref_closest.prim >= 0
@@ -271,9 +288,7 @@ def assert_hits_identical(a: HitBatch, b: HitBatch, label: str = "") -> None:
         x, y = getattr(a, name), getattr(b, name)
         assert x.dtype == y.dtype, f"{name} dtype/shape [{label}]"
         assert x.shape == y.shape, f"{name} dtype/shape [{label}]"
-        assert x.tobytes() == y.tobytes(), (
-            f"{name} differs on {int(np.sum(x != y))} rays [{label}]"
-        )
+        assert x.tobytes() == y.tobytes(), f"{name} differs on {int(np.sum(x != y))} rays [{label}]"
 
 
 def check_counter_invariants(rays: RayBatch, hits: HitBatch) -> None:
@@ -321,16 +336,47 @@ def check_stack_counters(bvh, rays: RayBatch, closest: HitBatch, any_hit: HitBat
 # --------------------------------------------------------------------------- test meshes
 
 
-def icosphere(subdivisions: int = 2, radius: float = 1.0,
-              centre: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> TriangleMesh:
+def icosphere(
+    subdivisions: int = 2, radius: float = 1.0, centre: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> TriangleMesh:
     """A closed icosphere; every edge is shared by exactly two triangles."""
     t = (1.0 + math.sqrt(5.0)) / 2.0
-    verts = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
-             (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
-    faces = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9),
-             (5, 11, 4), (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2),
-             (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10),
-             (8, 6, 7), (9, 8, 1)]
+    verts = [
+        (-1, t, 0),
+        (1, t, 0),
+        (-1, -t, 0),
+        (1, -t, 0),
+        (0, -1, t),
+        (0, 1, t),
+        (0, -1, -t),
+        (0, 1, -t),
+        (t, 0, -1),
+        (t, 0, 1),
+        (-t, 0, -1),
+        (-t, 0, 1),
+    ]
+    faces = [
+        (0, 11, 5),
+        (0, 5, 1),
+        (0, 1, 7),
+        (0, 7, 10),
+        (0, 10, 11),
+        (1, 5, 9),
+        (5, 11, 4),
+        (11, 10, 2),
+        (10, 7, 6),
+        (7, 1, 8),
+        (3, 9, 4),
+        (3, 4, 2),
+        (3, 2, 6),
+        (3, 6, 8),
+        (3, 8, 9),
+        (4, 9, 5),
+        (2, 4, 11),
+        (6, 2, 10),
+        (8, 6, 7),
+        (9, 8, 1),
+    ]
     v = [np.array(p, dtype=np.float64) / np.linalg.norm(p) for p in verts]
     f = list(faces)
     for _ in range(subdivisions):
@@ -360,8 +406,13 @@ def uv_sphere(n_lat: int = 12, n_lon: int = 24, radius: float = 1.0) -> Triangle
         theta = math.pi * i / n_lat
         for j in range(n_lon):
             phi = 2 * math.pi * j / n_lon
-            verts.append((radius * math.sin(theta) * math.cos(phi),
-                          radius * math.sin(theta) * math.sin(phi), radius * math.cos(theta)))
+            verts.append(
+                (
+                    radius * math.sin(theta) * math.cos(phi),
+                    radius * math.sin(theta) * math.sin(phi),
+                    radius * math.cos(theta),
+                )
+            )
     verts.append((0.0, 0.0, -radius))
     south = len(verts) - 1
 
@@ -466,3 +517,52 @@ def subsample(rays: RayBatch, n: int, seed: int = 0) -> RayBatch:
         return rays
     rng = np.random.default_rng(seed)
     return rays.subset(np.sort(rng.choice(rays.n_rays, n, replace=False)))
+
+
+# ------------------------------------------------------------- shared edge-case inputs
+
+
+def mixed_rays(mesh: TriangleMesh, n: int = 700, seed: int = 0) -> RayBatch:
+    """Inside, outside, interval and axis-parallel rays (zero components, ±0)."""
+    lo, hi = mesh.bounds()
+    rng = np.random.default_rng(seed)
+    axis = np.zeros((n // 4, 3))
+    axis[np.arange(n // 4), rng.integers(0, 3, n // 4)] = rng.choice([-1.0, 1.0], n // 4)
+    axis[::7] *= -0.0
+    inside = lo + rng.random((n // 4, 3)) * (hi - lo)
+    return concat(
+        rays_inside(lo, hi, n // 4, seed + 1),
+        rays_outside(lo, hi, n // 4, seed + 2),
+        rays_intervals(lo, hi, n // 4, seed + 3),
+        RayBatch(inside, axis),
+    )
+
+
+def chain_tree(depth: int) -> tuple[Bvh2, TriangleMesh]:
+    """A caterpillar tree of ``depth`` levels: inner child 0, leaf child 1, equal boxes."""
+    n_nodes = 2 * depth + 1
+    first = np.zeros(n_nodes, np.int32)
+    count = np.zeros(n_nodes, np.int32)
+    for level in range(depth):
+        inner = 0 if level == 0 else 2 * level - 1
+        first[inner] = 2 * level + 1
+        count[2 * level + 2] = 1
+        first[2 * level + 2] = level
+    count[2 * depth - 1] = 1
+    first[2 * depth - 1] = depth
+    lo = np.zeros((n_nodes, 3), np.float32)
+    hi = np.tile(np.float32([1, 1, 0]), (n_nodes, 1))
+    n_prims = depth + 1
+    # Number the leaves' prim slots in depth-first order (child 0 first).
+    stack, slot = [0], 0
+    while stack:
+        k = stack.pop()
+        if count[k]:
+            first[k] = slot
+            slot += 1
+        else:
+            stack += [first[k] + 1, first[k]]
+    tri = np.tile([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], (n_prims, 1))
+    mesh = TriangleMesh(tri, np.arange(3 * n_prims).reshape(-1, 3))
+    bvh = Bvh2(lo, hi, first, count, np.arange(n_prims, dtype=np.int32), n_prims)
+    return bvh, mesh

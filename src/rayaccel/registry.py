@@ -47,6 +47,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.traverse_bitstack",
     "rayaccel.bvh.traverse_restart_trail",
     "rayaccel.bvh.traverse_perfect_hash",
+    "rayaccel.bvh.traverse_wide",
 )
 
 #: Composed build keys enumerated beside the plain builders: the eight configurations of

@@ -15,7 +15,7 @@ import pytest
 import rayaccel
 import reference
 from rayaccel import registry
-from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
+from rayaccel.bvh.layout import MAX_DEPTH
 from rayaccel.bvh.perfect_hash import build_perfect_hash
 from rayaccel.errors import InvalidInputError, UnknownVariantError
 from rayaccel.rays.batch import RayBatch
@@ -33,34 +33,24 @@ ORDERED = [
     ("bvh2.perfect_hash", {"uncle_refs": False}),
     ("bvh2.perfect_hash", {"register": False}),
     ("bvh2.perfect_hash", {"level_mask": False}),
-    ("bvh2.perfect_hash", {"hash": False, "uncle_refs": False, "register": False,
-                           "level_mask": False}),
+    (
+        "bvh2.perfect_hash",
+        {"hash": False, "uncle_refs": False, "register": False, "level_mask": False},
+    ),
 ]
 ORDERED_PARAMS = [
     pytest.param(key, opts, id=key + "".join(f"-{k}={v}" for k, v in opts.items()))
     for key, opts in ORDERED
 ]
 #: Traversals that enter exactly the nodes bvh2.stack enters.
-SAME_NODES = [("bvh2.parent_link", {}), ("bvh2.bitstack", {}), ("bvh2.perfect_hash", {}),
-              ("bvh2.restart_trail", {"short_stack": 64})]
+SAME_NODES = [
+    ("bvh2.parent_link", {}),
+    ("bvh2.bitstack", {}),
+    ("bvh2.perfect_hash", {}),
+    ("bvh2.restart_trail", {"short_stack": 64}),
+]
 BUILDERS = registry.keys("builder", "bvh2")
 SCENES = ("teapot", "soup", "cornell-box")
-
-
-def _rays(mesh, n: int = 700, seed: int = 0) -> RayBatch:
-    """Inside, outside, interval and axis-parallel rays (zero components, ±0)."""
-    lo, hi = mesh.bounds()
-    rng = np.random.default_rng(seed)
-    axis = np.zeros((n // 4, 3))
-    axis[np.arange(n // 4), rng.integers(0, 3, n // 4)] = rng.choice([-1.0, 1.0], n // 4)
-    axis[::7] *= -0.0
-    inside = lo + rng.random((n // 4, 3)) * (hi - lo)
-    return reference.concat(
-        reference.rays_inside(lo, hi, n // 4, seed + 1),
-        reference.rays_outside(lo, hi, n // 4, seed + 2),
-        reference.rays_intervals(lo, hi, n // 4, seed + 3),
-        RayBatch(inside, axis),
-    )
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +61,7 @@ def cases():
         for scene in SCENES:
             mesh = rayaccel.scenes.get(scene)
             accel = rayaccel.build(mesh, builder)
-            rays = _rays(mesh)
+            rays = reference.mixed_rays(mesh)
             closest = accel.trace(rays, stats=True)
             any_hit = accel.trace(rays, query="any", stats=True)
             out[builder, scene] = (accel, rays, closest, any_hit)
@@ -100,13 +90,13 @@ def test_skip_same_t_same_prim_except_exact_ties(cases):
         hits = accel.trace(rays, traversal="bvh2.skip", stats=True)
         assert hits.t.tobytes() == closest.t.tobytes(), label
         ties = np.flatnonzero(hits.prim != closest.prim)
-        again = reference.eval_prims(reference.tri9(accel.mesh), rays.subset(ties),
-                                     hits.prim[ties])
+        again = reference.eval_prims(reference.tri9(accel.mesh), rays.subset(ties), hits.prim[ties])
         assert again.t.tobytes() == closest.t[ties].tobytes(), label
         assert (hits.stats["nodes"] >= 1).sum() >= (closest.stats["nodes"] >= 1).sum()
         assert hits.stats["nodes"].sum() >= closest.stats["nodes"].sum(), label
-        occluded = accel.occluded(rays.origin, rays.direction, rays.tmin, rays.tmax,
-                                  traversal="bvh2.skip")
+        occluded = accel.occluded(
+            rays.origin, rays.direction, rays.tmin, rays.tmax, traversal="bvh2.skip"
+        )
         assert np.array_equal(occluded, any_hit.prim >= 0), label
 
 
@@ -141,8 +131,11 @@ def test_derived_layouts_counted_in_info_bytes():
     d = np.array([[0.0, 0.0, 1.0]])
     accel.intersect(o, d)
     before = accel.info()["bytes"]
-    for key, name in (("bvh2.skip", "bvh2.skip"), ("bvh2.parent_link", "bvh2.links"),
-                      ("bvh2.perfect_hash", "bvh2.keyed")):
+    for key, name in (
+        ("bvh2.skip", "bvh2.skip"),
+        ("bvh2.parent_link", "bvh2.links"),
+        ("bvh2.perfect_hash", "bvh2.keyed"),
+    ):
         accel.intersect(o, d, traversal=key)
         layout = accel.derived(name)
         assert layout is not None
@@ -157,8 +150,9 @@ def _check_all_against_stack(accel_or_bvh, mesh, rays, label):
 
     def trace(key, query, opts):
         variant = registry.get(key)
-        return variant.func(accel_or_bvh, mesh, rays, query=query,
-                            options=variant.make_options(opts), cache=cache)
+        return variant.func(
+            accel_or_bvh, mesh, rays, query=query, options=variant.make_options(opts), cache=cache
+        )
 
     cache: dict = {}
     ref = trace("bvh2.stack", "closest", {})
@@ -178,51 +172,19 @@ def test_deep_degenerate_tree_identical_triangles():
     accel = rayaccel.build(mesh, "bvh2.binned_sah", max_leaf_size=1)
     rng = np.random.default_rng(3)
     o = np.column_stack([rng.random(300) * 0.5, rng.random(300) * 0.5, np.full(300, -1.0)])
-    d = np.column_stack([rng.normal(size=300) * 0.05, rng.normal(size=300) * 0.05,
-                         np.ones(300)])
+    d = np.column_stack([rng.normal(size=300) * 0.05, rng.normal(size=300) * 0.05, np.ones(300)])
     ref = _check_all_against_stack(accel.structure, mesh, RayBatch(o, d), "identical")
     assert ref.hit.sum() > 200
 
 
-def _chain(depth: int):
-    """A caterpillar tree of ``depth`` levels: inner child 0, leaf child 1, equal boxes."""
-    n_nodes = 2 * depth + 1
-    first = np.zeros(n_nodes, np.int32)
-    count = np.zeros(n_nodes, np.int32)
-    for level in range(depth):
-        inner = 0 if level == 0 else 2 * level - 1
-        first[inner] = 2 * level + 1
-        count[2 * level + 2] = 1
-        first[2 * level + 2] = level
-    count[2 * depth - 1] = 1
-    first[2 * depth - 1] = depth
-    lo = np.zeros((n_nodes, 3), np.float32)
-    hi = np.tile(np.float32([1, 1, 0]), (n_nodes, 1))
-    n_prims = depth + 1
-    # Number the leaves' prim slots in depth-first order (child 0 first).
-    stack, slot = [0], 0
-    while stack:
-        k = stack.pop()
-        if count[k]:
-            first[k] = slot
-            slot += 1
-        else:
-            stack += [first[k] + 1, first[k]]
-    tri = np.tile([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], (n_prims, 1))
-    mesh = rayaccel.TriangleMesh(tri, np.arange(3 * n_prims).reshape(-1, 3))
-    bvh = Bvh2(lo, hi, first, count, np.arange(n_prims, dtype=np.int32), n_prims)
-    return bvh, mesh
-
-
 def test_deep_chain_at_max_depth():
     """A MAX_DEPTH-deep caterpillar: the trails, keys and levels use every bit they have."""
-    bvh, mesh = _chain(MAX_DEPTH)
+    bvh, mesh = reference.chain_tree(MAX_DEPTH)
     bvh.validate(mesh.triangles())
     assert bvh.depth() == MAX_DEPTH
     rng = np.random.default_rng(4)
     o = np.column_stack([rng.random(200) * 0.6, rng.random(200) * 0.6, np.full(200, -1.0)])
-    d = np.column_stack([rng.normal(size=200) * 0.02, rng.normal(size=200) * 0.02,
-                         np.ones(200)])
+    d = np.column_stack([rng.normal(size=200) * 0.02, rng.normal(size=200) * 0.02, np.ones(200)])
     ref = _check_all_against_stack(bvh, mesh, RayBatch(o, d), "chain")
     assert ref.hit.sum() > 100
 
@@ -231,8 +193,7 @@ def test_deep_chain_at_max_depth():
 def test_degenerate_rays_miss_and_terminate(traversal):
     accel = rayaccel.build(rayaccel.scenes.get("cornell-box"))
     o = np.array([[0.5, 0.5, 0.5]] * 5, np.float32)
-    d = np.array([[0, 0, 0], [np.nan, 1, 0], [np.inf, 0, 0], [0, -0.0, 1], [1, 0, 0]],
-                 np.float32)
+    d = np.array([[0, 0, 0], [np.nan, 1, 0], [np.inf, 0, 0], [0, -0.0, 1], [1, 0, 0]], np.float32)
     o[4] = np.nan
     hits = accel.intersect(o, d, traversal=traversal, stats=True)
     ref = accel.intersect(o, d, stats=True)
@@ -306,9 +267,11 @@ def test_pause_resume_collects_all_hits_in_order(scene):
     mesh = reference.icosphere(2) if scene == "icosphere" else rayaccel.scenes.get(scene)
     accel = rayaccel.build(mesh)
     lo, hi = mesh.bounds()
-    rays = reference.concat(reference.rays_outside(lo, hi, 120, 1),
-                            reference.rays_inside(lo, hi, 60, 2),
-                            reference.rays_intervals(lo, hi, 40, 3))
+    rays = reference.concat(
+        reference.rays_outside(lo, hi, 120, 1),
+        reference.rays_inside(lo, hi, 60, 2),
+        reference.rays_intervals(lo, hi, 40, 3),
+    )
     state = accel.traversal_state(rays.origin, rays.direction, rays.tmin, rays.tmax)
     first = state.next_hits()
     # The first pause is the any-hit answer of the same traversal order.
@@ -331,10 +294,11 @@ def test_pause_resume_collects_all_hits_in_order(scene):
 def test_traversal_state_closest_is_min_of_all_hits():
     mesh = rayaccel.scenes.get("teapot")
     accel = rayaccel.build(mesh)
-    rays = _rays(mesh, 200, seed=9)
+    rays = reference.mixed_rays(mesh, 200, seed=9)
     closest = accel.trace(rays)
-    ray, t, _, _, _ = accel.traversal_state(rays.origin, rays.direction, rays.tmin,
-                                            rays.tmax).all_hits()
+    ray, t, _, _, _ = accel.traversal_state(
+        rays.origin, rays.direction, rays.tmin, rays.tmax
+    ).all_hits()
     first = np.full(rays.n_rays, np.inf, np.float32)
     np.minimum.at(first, ray, t)
     assert first.tobytes() == closest.t.tobytes()
