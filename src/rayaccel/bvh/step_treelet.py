@@ -426,7 +426,9 @@ def _treelet_round(
                 )  # fmt: skip
 
 
-def split_leaves_linked(bvh: Bvh2, mesh: TriangleMesh, max_leaf_size: int, split: bool) -> LinkedTree:
+def split_leaves_linked(
+    bvh: Bvh2, mesh: TriangleMesh, max_leaf_size: int, split: bool
+) -> LinkedTree:
     """Return the linked form of ``bvh`` with leaves of 2..``max_leaf_size`` references split.
 
     Node ids of ``bvh`` keep their meaning (a split leaf becomes the root of its
