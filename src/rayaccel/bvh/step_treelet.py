@@ -18,12 +18,15 @@ unordered partition is enumerated once, as the non-empty subsets P of S without 
 lowest bit (``P = (P − 1) & rest``), 2^(|S|−1) − 1 of them. The optimum is rebuilt
 top-down reusing the treelet's n − 1 inner slots (R keeps its id and box).
 
-Nodes are processed bottom-up, so every treelet is optimized after its subtrees:
-level by level from the lowest (a node's level is its height), in parallel over the
-nodes of a level, which root disjoint subtrees, so the result does not depend on the
-thread count. Nodes with fewer than γ references are skipped; the pass is repeated
-for a few rounds with γ doubled each round (3 rounds, γ = 7: the authors' recollection
-of the paper's schedule, unconfirmed). A final pass collapses subtrees into leaves of
+Nodes are processed bottom-up, so every treelet is optimized after its subtrees: in
+post-order, where maximal subtrees of about 1/1024 of the references run in parallel
+(they are disjoint) and the few nodes above them follow serially; a treelet touches
+only its root's subtree, so every such order, hence every thread count, gives the
+same tree. (The paper's GPU version climbs from the leaves with an atomic counter
+per node; one parallel region per round avoids a barrier per tree level.) Nodes
+with fewer than γ references are not treelet roots; the pass is repeated for a few
+rounds with γ doubled each round (3 rounds, γ = 7: the authors' recollection of the
+paper's schedule, unconfirmed). A final pass collapses subtrees into leaves of
 up to ``max_leaf_size`` references where the SAH prefers a leaf
 (:func:`rayaccel.bvh.linked.linked_to_canonical`).
 
@@ -57,8 +60,8 @@ from rayaccel.scene.mesh import TriangleMesh
 
 #: Largest treelet: the DP tables hold 2^n entries and the partitions cost O(3^n).
 MAX_TREELET = 8
-#: Treelet roots per parallel work item.
-_CHUNK = 64
+#: Smallest subtree (references) handed to a thread as one task.
+_MIN_GRAIN = 256
 
 
 @dataclass(frozen=True, slots=True)
@@ -224,70 +227,89 @@ def _subtree_costs(root, left, right, lo, hi, count, max_leaf, c_inner, c_prim):
 
 
 @cpu_kernel()
-def _levels(root, left, right, n_prim, gamma):
-    """Group the treelet roots of one round by height (lowest first).
+def _schedule(root, left, right, n_prim, gamma, grain):
+    """List one round's treelet roots in a valid bottom-up order, grouped into tasks.
 
     A root is an inner node with at least ``gamma`` references and a grandchild
-    (height >= 2; below that a treelet has two leaves and nothing to change).
+    (below that a treelet has two leaves and nothing to change). The walk is a
+    post-order, so every root follows its descendants. Maximal subtrees of at most
+    ``grain`` references are *tasks*: their roots are independent of other tasks'.
+    The remaining roots (the *top*, ancestors of tasks) come last.
 
     Returns
     -------
-    level_start : (n_levels + 1,) int32
-    level_nodes : (n_roots,) int32
-        Roots of level ``h`` are ``level_nodes[level_start[h]:level_start[h + 1]]``,
-        in post-order.
+    task_start : (n_tasks + 2,) int32
+        Task ``t`` owns ``order[task_start[t]:task_start[t + 1]]``; the last range is
+        the top.
+    order : (n_roots,) int32
+        Roots, post-order within each range.
     """
     n = left.shape[0]
-    height = np.zeros(n, dtype=np.int32)
-    order = np.empty(n, dtype=np.int32)
+    task = np.full(n, -1, dtype=np.int32)
+    post = np.empty(n, dtype=np.int32)
     stack = np.empty(n + 2, dtype=np.int32)
     expanded = np.zeros(n, dtype=np.uint8)
+    has_grandchild = np.zeros(n, dtype=np.uint8)
+    n_tasks = 0
+    if n_prim[root] <= grain:
+        task[root] = 0
+        n_tasks = 1
     stack[0] = root
     sp = 1
     m = 0
-    # Post-order: heights, and the eligible roots in visiting order.
     while sp > 0:
         node = stack[sp - 1]
         a = left[node]
         if a >= 0 and not expanded[node]:
+            # First visit: children inherit the task, or start one when small enough.
             expanded[node] = 1
-            stack[sp] = right[node]
+            b = right[node]
+            for c in (b, a):
+                if task[node] >= 0:
+                    task[c] = task[node]
+                elif n_prim[c] <= grain:
+                    task[c] = n_tasks
+                    n_tasks += 1
+            stack[sp] = b
             stack[sp + 1] = a
             sp += 2
             continue
         sp -= 1
         if a < 0:
             continue
-        height[node] = 1 + max(height[a], height[right[node]])
-        if height[node] >= 2 and n_prim[node] >= gamma:
-            order[m] = node
+        if left[a] >= 0 or left[right[node]] >= 0:
+            has_grandchild[node] = 1
+        if has_grandchild[node] and n_prim[node] >= gamma:
+            post[m] = node
             m += 1
-    # Stable counting sort of the roots by height.
-    top = height[root] + 1
-    level_start = np.zeros(max(top, 2) + 1, dtype=np.int32)
+    # Stable counting sort by task; the top (task -1) goes last.
+    task_start = np.zeros(n_tasks + 2, dtype=np.int32)
     for t in range(m):
-        level_start[height[order[t]] + 1] += 1
-    for h in range(level_start.shape[0] - 1):
-        level_start[h + 1] += level_start[h]
-    fill = level_start.copy()
-    level_nodes = np.empty(m, dtype=np.int32)
+        g = task[post[t]]
+        task_start[(g if g >= 0 else n_tasks) + 1] += 1
+    for g in range(n_tasks + 1):
+        task_start[g + 1] += task_start[g]
+    fill = task_start.copy()
+    order = np.empty(m, dtype=np.int32)
     for t in range(m):
-        h = height[order[t]]
-        level_nodes[fill[h]] = order[t]
-        fill[h] += 1
-    return level_start, level_nodes
+        g = task[post[t]]
+        g = g if g >= 0 else n_tasks
+        order[fill[g]] = post[t]
+        fill[g] += 1
+    return task_start, order
 
 
 def _restructure_py(
     root, left, right, lo, hi, cost, n_prim, size, max_leaf, c_inner, c_prim,
-    leaves, inner, box_lo, box_hi, s_cost, s_prim, s_part, s_set, s_node,
+    leaves, inner, box_lo, box_hi, s_cost, s_prim, s_split, s_set, s_node,
 ):  # fmt: skip
     """Replace the treelet of ``root`` by its SAH-optimal restructuring (module docstring).
 
     Scratch: ``leaves (8,)``, ``inner (8,)``, ``box_lo``/``box_hi (256, 3)`` float32,
-    ``s_cost (256,)`` float64, ``s_prim``/``s_part (256,)`` and ``s_set``/``s_node (8,)``
-    int32. The new costs, reference counts and boxes of the treelet's inner nodes are
-    written back, so ancestors see a consistent tree.
+    ``s_cost``/``s_split (256,)`` float64 (cost; best split without the node's own
+    term), ``s_prim (256,)`` and ``s_set``/``s_node (8,)`` int32. The new costs,
+    reference counts and boxes of the treelet's inner nodes are written back, so
+    ancestors see a consistent tree.
     """
     # Form the treelet: expand the treelet leaf of largest area until `size` leaves.
     leaves[0] = left[root]
@@ -338,22 +360,19 @@ def _restructure_py(
             box_hi[s, a] = max(box_hi[rest, a], box_hi[low, a])
         s_prim[s] = s_prim[rest] + s_prim[low]
         area = half_area(box_lo, box_hi, s)
-        # Each unordered partition once: P ranges over non-empty subsets of `rest`.
+        # Each unordered partition once: P ranges over non-empty subsets of `rest`. Only
+        # the minimum is kept (a branch-free loop); the rebuild finds the argmin again.
         best_split = np.inf
-        best_part = rest
         p = rest
         while p > 0:
-            c = s_cost[p] + s_cost[s ^ p]
-            if c < best_split:
-                best_split = c
-                best_part = p
+            best_split = min(best_split, s_cost[p] + s_cost[s ^ p])
             p = (p - 1) & rest
         c = c_inner * area + best_split
         # The leaf term, under the same rule as the final collapse.
         if s_prim[s] <= max_leaf:
             c = min(c, c_prim * area * s_prim[s])
         s_cost[s] = c
-        s_part[s] = best_part
+        s_split[s] = best_split
     # Rebuild top-down from the full set, reusing the treelet's inner slots.
     s_set[0] = full
     s_node[0] = root
@@ -363,7 +382,13 @@ def _restructure_py(
         sp -= 1
         s = s_set[sp]
         node = s_node[sp]
-        p = s_part[s]
+        # The first partition in enumeration order that reaches the minimum.
+        rest = s ^ (s & -s)
+        p = rest
+        while p > 0 and s_cost[p] + s_cost[s ^ p] != s_split[s]:
+            p = (p - 1) & rest
+        if p == 0:
+            p = rest
         for side in range(2):
             # The part holding the lowest leaf goes left.
             part = s ^ p if side == 0 else p
@@ -392,38 +417,48 @@ def _restructure_py(
 _restructure = cpu_inline(_restructure_py)
 
 
+@cpu_inline
+def _restructure_range(
+    order, begin, end, left, right, lo, hi, cost, n_prim, size, max_leaf, c_inner, c_prim
+):
+    """Restructure the treelets of ``order[begin:end]`` in order, with fresh scratch."""
+    leaves = np.empty(MAX_TREELET, dtype=np.int32)
+    inner = np.empty(MAX_TREELET, dtype=np.int32)
+    box_lo = np.empty((1 << MAX_TREELET, 3), dtype=np.float32)
+    box_hi = np.empty((1 << MAX_TREELET, 3), dtype=np.float32)
+    s_cost = np.empty(1 << MAX_TREELET, dtype=np.float64)
+    s_split = np.empty(1 << MAX_TREELET, dtype=np.float64)
+    s_prim = np.empty(1 << MAX_TREELET, dtype=np.int32)
+    s_set = np.empty(MAX_TREELET, dtype=np.int32)
+    s_node = np.empty(MAX_TREELET, dtype=np.int32)
+    for t in range(begin, end):
+        _restructure(
+            order[t], left, right, lo, hi, cost, n_prim, size, max_leaf, c_inner, c_prim,
+            leaves, inner, box_lo, box_hi, s_cost, s_prim, s_split, s_set, s_node,
+        )  # fmt: skip
+
+
 @cpu_kernel(parallel=True)
 def _treelet_round(
-    left, right, lo, hi, cost, n_prim, level_start, level_nodes, size, max_leaf, c_inner, c_prim
+    left, right, lo, hi, cost, n_prim, task_start, order, size, max_leaf, c_inner, c_prim
 ):
-    """Restructure the treelets of every root, level by level (see :func:`_levels`).
+    """Restructure the treelets of every root listed by :func:`_schedule`.
 
-    Roots of one level root disjoint subtrees whose descendants are all done, so they
-    run in parallel (chunks of ``_CHUNK`` roots, each with its own scratch) and the
-    result does not depend on the thread count.
+    Tasks own disjoint subtrees, so they run in parallel, each bottom-up in its own
+    order; the top roots follow serially. Any such order gives the same tree (a
+    treelet reads and writes only its root's subtree), so the result does not depend
+    on the thread count.
     """
-    n_levels = level_start.shape[0] - 1
-    for h in range(n_levels):
-        begin = level_start[h]
-        m = level_start[h + 1] - begin
-        n_chunks = (m + _CHUNK - 1) // _CHUNK
-        for ch in prange(n_chunks):
-            leaves = np.empty(MAX_TREELET, dtype=np.int32)
-            inner = np.empty(MAX_TREELET, dtype=np.int32)
-            box_lo = np.empty((1 << MAX_TREELET, 3), dtype=np.float32)
-            box_hi = np.empty((1 << MAX_TREELET, 3), dtype=np.float32)
-            s_cost = np.empty(1 << MAX_TREELET, dtype=np.float64)
-            s_prim = np.empty(1 << MAX_TREELET, dtype=np.int32)
-            s_part = np.empty(1 << MAX_TREELET, dtype=np.int32)
-            s_set = np.empty(MAX_TREELET, dtype=np.int32)
-            s_node = np.empty(MAX_TREELET, dtype=np.int32)
-            end = min(m, (ch + 1) * _CHUNK)
-            for t in range(ch * _CHUNK, end):
-                _restructure(
-                    level_nodes[begin + t], left, right, lo, hi, cost, n_prim, size, max_leaf,
-                    c_inner, c_prim, leaves, inner, box_lo, box_hi, s_cost, s_prim, s_part,
-                    s_set, s_node,
-                )  # fmt: skip
+    n_tasks = task_start.shape[0] - 2
+    for g in prange(n_tasks):
+        _restructure_range(
+            order, task_start[g], task_start[g + 1], left, right, lo, hi, cost, n_prim, size,
+            max_leaf, c_inner, c_prim,
+        )  # fmt: skip
+    _restructure_range(
+        order, task_start[n_tasks], task_start[n_tasks + 1], left, right, lo, hi, cost, n_prim,
+        size, max_leaf, c_inner, c_prim,
+    )  # fmt: skip
 
 
 def split_leaves_linked(
@@ -479,16 +514,18 @@ def treelet(bvh: Bvh2, mesh: TriangleMesh, options: TreeletOptions | None = None
     c_prim = np.float64(opt.intersection_cost)
     tree = split_leaves_linked(bvh, mesh, opt.max_leaf_size, opt.split_leaves)
     root = np.int32(0)
+    # Parallel tasks: subtrees of about 1/1024 of the references (at least _MIN_GRAIN).
+    grain = np.int32(max(_MIN_GRAIN, bvh.n_refs // 1024))
     cost, n_prim = _subtree_costs(
         root, tree.left, tree.right, tree.lo, tree.hi, tree.count, max_leaf, c_inner, c_prim
     )
     for r in range(opt.rounds):
         gamma = np.int32(min(opt.min_subtree << r, np.iinfo(np.int32).max))
-        level_start, level_nodes = _levels(root, tree.left, tree.right, n_prim, gamma)
-        if level_nodes.shape[0] == 0:
+        task_start, order = _schedule(root, tree.left, tree.right, n_prim, gamma, grain)
+        if order.shape[0] == 0:
             break
         _treelet_round(
-            tree.left, tree.right, tree.lo, tree.hi, cost, n_prim, level_start, level_nodes,
+            tree.left, tree.right, tree.lo, tree.hi, cost, n_prim, task_start, order,
             np.int32(opt.treelet_size), max_leaf, c_inner, c_prim,
         )  # fmt: skip
     return linked_to_canonical(
