@@ -15,7 +15,7 @@ numeric order so that every proper subset comes first:
 where A is the surface area of the union box (precomputed for all subsets), N the
 number of references and a singleton costs its subtree's current SAH cost. Each
 unordered partition is enumerated once, as the non-empty subsets P of S without its
-lowest bit (``P = (P − 1) & rest``), 2^(|S|−1) − 1 of them. The optimum is rebuilt
+lowest bit (``P = (P - 1) & rest``), 2^(|S|−1) − 1 of them. The optimum is rebuilt
 top-down reusing the treelet's n − 1 inner slots (R keeps its id and box).
 
 Nodes are processed bottom-up, so every treelet is optimized after its subtrees: in
@@ -25,8 +25,8 @@ only its root's subtree, so every such order, hence every thread count, gives th
 same tree. (The paper's GPU version climbs from the leaves with an atomic counter
 per node; one parallel region per round avoids a barrier per tree level.) Nodes
 with fewer than γ references are not treelet roots; the pass is repeated for a few
-rounds with γ doubled each round (3 rounds, γ = 7: the authors' recollection of the
-paper's schedule, unconfirmed). A final pass collapses subtrees into leaves of
+rounds with γ doubled each round (3 rounds from γ = 7: our recollection of the
+paper's schedule, not confirmed against its text). A final pass collapses subtrees into leaves of
 up to ``max_leaf_size`` references where the SAH prefers a leaf
 (:func:`rayaccel.bvh.linked.linked_to_canonical`).
 
@@ -36,7 +36,8 @@ leaves (a balanced subtree; each reference's box is its triangle's box clipped t
 leaf's box, which stays valid for spatial-split input), so the DP may regroup
 primitives; the DP's leaf term is allowed for ``N(S) <= max_leaf_size`` and matches
 the final collapse, so an input leaf can always be re-formed and the SAH (same
-constants) never rises. Larger input leaves stay whole. Constants C_i = 1.2,
+constants) never rises, unless the conversion's depth guard has to rebalance a
+subtree deeper than ``MAX_DEPTH``. Larger input leaves stay whole. Constants C_i = 1.2,
 C_t = 1.0. Cost per treelet O(3^n); reported: over 20 scenes, more than 90% of the
 ray-tracing performance of SBVH from an LBVH input.
 """
@@ -77,7 +78,8 @@ class TreeletOptions:
         Bottom-up passes over the tree (0..32; 0 only splits and re-collapses leaves).
     min_subtree : int
         γ: nodes with fewer references are not treelet roots in the first round;
-        doubled every round (the authors' recollection: γ = 7, unconfirmed).
+        doubled every round (γ = 7 and the doubling are our recollection of the
+        paper, unconfirmed).
     traversal_cost, intersection_cost : float
         SAH constants C_i and C_t of the DP and of the final collapse (1.2 and 1).
     max_leaf_size : int
