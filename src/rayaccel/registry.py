@@ -41,6 +41,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.build_sweep_sah",
     "rayaccel.bvh.step_collapse",
     "rayaccel.bvh.step_reinsert",
+    "rayaccel.bvh.step_treelet",
     "rayaccel.bvh.traverse_stack",
     "rayaccel.bvh.traverse_skip",
     "rayaccel.bvh.traverse_parent_link",
