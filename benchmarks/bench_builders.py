@@ -4,7 +4,8 @@ For every scene and build key (default: ``registry.configurations()``) this meas
 the build time (median of ``--build-repeats`` on the current numba thread count),
 triangles per second, SAH, EPO (``--no-epo`` skips it), references per triangle, and
 ``bvh2.stack`` throughput for primary and diffuse closest-hit rays and shadow any-hit
-rays (median of ``--repeats`` after a warm-up). One JSONL record per (scene, key),
+rays (median of ``--repeats`` after a warm-up) with the mean nodes entered and triangles
+tested per ray (independent of the machine's load). One JSONL record per (scene, key),
 written atomically after each; a Markdown table per scene is printed at the end.
 
     NUMBA_NUM_THREADS=2 python benchmarks/bench_builders.py --scenes staircase kitchen
@@ -59,12 +60,17 @@ def measure(mesh, name, key, rays, args) -> dict:
             accel.trace(rayset.rays, query=rayset.query, traversal="bvh2.stack")
             rates.append(rayset.n_rays / (time.perf_counter() - start) / 1e6)
         record[f"mrays_{kind}"] = round(statistics.median(rates), 3)
+        # Work per ray (machine-independent): nodes entered and triangles tested.
+        counted = accel.trace(rayset.rays, query=rayset.query, stats=True).stats
+        record[f"nodes_{kind}"] = round(float(counted["nodes"].mean()), 2)
+        record[f"prims_{kind}"] = round(float(counted["prim_tests"].mean()), 2)
     return record
 
 
 def table(records: list[dict]) -> str:
     cols = ["key", "build_ms", "mtris_per_s", "sah", "epo", "refs_per_prim",
-            "mrays_primary", "mrays_diffuse", "mrays_shadow"]  # fmt: skip
+            "mrays_primary", "mrays_diffuse", "mrays_shadow",
+            "nodes_primary", "prims_primary", "nodes_diffuse", "prims_diffuse"]  # fmt: skip
     out = []
     for scene in dict.fromkeys(r["scene"] for r in records):
         rows = [r for r in records if r["scene"] == scene]
