@@ -197,7 +197,9 @@ def build_insertion_refs(
     right = np.full(n_nodes, -1, dtype=np.int32)
     parent = np.full(n_nodes, -1, dtype=np.int32)
     search = BRANCH_AND_BOUND if opt.search == "branch_and_bound" else GREEDY
-    root = int(_insert_kernel(np.int32(search), np.int32(opt.max_visits), left, right, parent, lo, hi))
+    root = int(
+        _insert_kernel(np.int32(search), np.int32(opt.max_visits), left, right, parent, lo, hi)
+    )
     prim_index = np.ascontiguousarray(prim_id[order], dtype=np.int32)
     tree = LinkedTree(left, right, lo, hi, first, count, prim_index)
     return linked_to_canonical(

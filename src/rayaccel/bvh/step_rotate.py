@@ -104,7 +104,7 @@ class RotateOptions:
 
 @cpu_inline
 def _move_delta(node, move, left, right, lo, hi):
-    """Change of the inner-node area sum if ``move`` is applied at ``node`` (inf: not applicable)."""
+    """Change of the inner-node area sum if ``move`` is applied at ``node`` (inf: not possible)."""
     a = left[node]
     b = right[node]
     if move < 2:
@@ -247,7 +247,8 @@ def _anneal(root, left, right, lo, hi, best_left, best_right, best_lo, best_hi, 
 
     ``schedule`` holds the temperature of every pass. Returns the best inner-area sum.
     """
-    np.random.seed(seed)
+    # numba's generator (per thread, seeded here), not numpy's global state.
+    np.random.seed(seed)  # noqa: NPY002
     n = left.shape[0]
     order = np.empty(n, dtype=np.int32)
     stack = np.empty(n + 2, dtype=np.int32)
@@ -274,10 +275,10 @@ def _anneal(root, left, right, lo, hi, best_left, best_right, best_lo, best_hi, 
                     n_valid += 1
             if n_valid == 0:
                 continue
-            move = valid[min(int(np.random.random() * n_valid), n_valid - 1)]
+            move = valid[min(int(np.random.random() * n_valid), n_valid - 1)]  # noqa: NPY002
             delta = _move_delta(node, move, left, right, lo, hi)
             # Metropolis: always downhill, uphill with probability exp(-ΔA / (A(N)·T)).
-            u = np.random.random()
+            u = np.random.random()  # noqa: NPY002
             if delta < 0.0 or u < np.exp(-delta / (area * temperature)):
                 _apply_move(node, move, left, right, lo, hi)
         total = _inner_area(order, m, lo, hi)
