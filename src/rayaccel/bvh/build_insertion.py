@@ -147,7 +147,8 @@ def _insert_kernel(search, max_visits, left, right, parent, lo, hi):
     n = (left.shape[0] + 1) // 2
     root = n - 1
     parent[root] = -1
-    heap = 2 * left.shape[0] + 2 if search == BRANCH_AND_BOUND else 1
+    # Each evaluated node pushes at most two children: the budget bounds the heap.
+    heap = min(2 * left.shape[0], 2 * max_visits) + 2 if search == BRANCH_AND_BOUND else 1
     h_cost = np.empty(heap, dtype=np.float64)
     h_node = np.empty(heap, dtype=np.int32)
     for k in range(1, n):

@@ -267,10 +267,13 @@ def _anneal(root, left, right, lo, hi, best_left, best_right, best_lo, best_hi, 
             area = half_area(lo, hi, node)
             if not area > 0.0:
                 continue
-            # Propose one applicable move uniformly at random.
+            # Propose one applicable move uniformly at random (moves 0-1 need an inner
+            # R, 2-3 an inner L, 4-5 both).
+            l_inner = left[left[node]] >= 0
+            r_inner = left[right[node]] >= 0
             n_valid = 0
             for move in range(N_MOVES):
-                if _move_delta(node, move, left, right, lo, hi) < np.inf:
+                if (r_inner or 2 <= move < 4) and (l_inner or move < 2):
                     valid[n_valid] = move
                     n_valid += 1
             if n_valid == 0:
