@@ -35,12 +35,14 @@ __all__ = [
 #: Every module that registers variants (a test checks no build_/traverse_ module is missing).
 BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.build_binned_sah",
+    "rayaccel.bvh.build_insertion",
     "rayaccel.bvh.build_lbvh",
     "rayaccel.bvh.build_ploc",
     "rayaccel.bvh.build_sbvh",
     "rayaccel.bvh.build_sweep_sah",
     "rayaccel.bvh.step_collapse",
     "rayaccel.bvh.step_reinsert",
+    "rayaccel.bvh.step_rotate",
     "rayaccel.bvh.step_treelet",
     "rayaccel.bvh.traverse_stack",
     "rayaccel.bvh.traverse_skip",

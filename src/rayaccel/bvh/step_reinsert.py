@@ -150,18 +150,24 @@ def _heap_pop(h_cost, h_node, size):
 
 
 @cpu_inline
-def _find_best_sibling(root, orphan, left, right, lo, hi, h_cost, h_node):
-    """Branch and bound for the node X minimising ``C_I(X) + A(X ∪ orphan)``."""
+def find_best_sibling(root, orphan, left, right, lo, hi, h_cost, h_node, max_visits):
+    """Branch and bound for the node X minimising ``C_I(X) + A(X ∪ orphan)``.
+
+    At most ``max_visits`` nodes are evaluated (the best one so far is returned when
+    the budget runs out); the heap ``h_cost``/``h_node`` needs one slot per node.
+    """
     orphan_area = _area(lo, hi, orphan)
     best = np.inf
     best_node = root
     size = _heap_push(h_cost, h_node, 0, 0.0, root)
-    while size > 0:
+    visits = 0
+    while size > 0 and visits < max_visits:
         induced = h_cost[0]
         x = h_node[0]
         size = _heap_pop(h_cost, h_node, size)
         if induced + orphan_area >= best:
             break
+        visits += 1
         merged = union_area(lo, hi, x, orphan)
         cost = induced + merged
         if cost < best:
@@ -185,6 +191,29 @@ def _replace_child(parent, left, right, p, old, new):
         else:
             right[p] = new
     parent[new] = p
+
+
+@cpu_inline
+def attach_sibling(root, fresh, x, orphan, parent, left, right, lo, hi):
+    """Splice the free node ``fresh`` above ``x`` as the parent of ``x`` and ``orphan``.
+
+    ``fresh`` takes ``x``'s place under ``x``'s parent, gets ``x`` (left) and
+    ``orphan`` (right) as children and their union as its box; the ancestors are
+    refitted. Returns the (possibly new) root.
+    """
+    gx = parent[x]
+    _replace_child(parent, left, right, gx, x, fresh)
+    if gx < 0:
+        root = fresh
+    left[fresh] = x
+    right[fresh] = orphan
+    parent[x] = fresh
+    parent[orphan] = fresh
+    for a in range(3):
+        lo[fresh, a] = min(lo[x, a], lo[orphan, a])
+        hi[fresh, a] = max(hi[x, a], hi[orphan, a])
+    refit_up(fresh, parent, left, right, lo, hi)
+    return root
 
 
 @cpu_kernel()
@@ -214,19 +243,8 @@ def _reinsert_batch(root, batch, left, right, parent, lo, hi):
         for k in range(2):
             orphan = orphan_a if k == 0 else orphan_b
             fresh = node if k == 0 else p
-            x = _find_best_sibling(root, orphan, left, right, lo, hi, h_cost, h_node)
-            gx = parent[x]
-            _replace_child(parent, left, right, gx, x, fresh)
-            if gx < 0:
-                root = fresh
-            left[fresh] = x
-            right[fresh] = orphan
-            parent[x] = fresh
-            parent[orphan] = fresh
-            for a in range(3):
-                lo[fresh, a] = min(lo[x, a], lo[orphan, a])
-                hi[fresh, a] = max(hi[x, a], hi[orphan, a])
-            refit_up(fresh, parent, left, right, lo, hi)
+            x = find_best_sibling(root, orphan, left, right, lo, hi, h_cost, h_node, n)
+            root = attach_sibling(root, fresh, x, orphan, parent, left, right, lo, hi)
     return root
 
 
