@@ -25,12 +25,12 @@ quarters it, and so on. A triangle's priority is ``p = (X^-l · (A_aabb −
 A_ideal))^Y``, where ``l`` is the level of the most important plane crossing its box,
 ``A_aabb`` the box's surface area and ``A_ideal = Σ_axis |2·projected area|`` the
 limit of its pieces' box areas under infinite splitting. A global scale ``D`` is found
-by bisection so that the extra references ``Σ floor(D·p)`` stay within
-``budget · N``; each triangle is then split recursively into ``1 + floor(D·p)``
-pieces, always at the most important median plane crossing the current box on its
-longest axis, the pieces' boxes coming from clipping the triangle exactly against
-the plane and intersecting with the current box (as SBVH does); the remaining count is
-shared between the halves in proportion to their longest extents.
+by bisection (serial, O(N) per halving) so that the extra references ``Σ floor(D·p)``
+stay within ``budget · N``; each triangle is then split recursively into
+``1 + floor(D·p)`` pieces, always at the most important median plane crossing the
+current box on its longest axis, the pieces' boxes coming from clipping the triangle
+exactly against the plane and intersecting with the current box (as SBVH does); the
+remaining count is shared between the halves in proportion to their longest extents.
 
 Both methods run in parallel over chunks of triangles in two passes (count the
 pieces, then write them at prefix-summed offsets), so the output does not depend on
@@ -279,22 +279,25 @@ def _median_priorities(tri, s_lo, s_ext, base, exponent):
     n = tri.shape[0]
     p = np.zeros(n, dtype=np.float64)
     for t in prange(n):
-        lo = np.empty(3, dtype=np.float64)
-        hi = np.empty(3, dtype=np.float64)
-        for a in range(3):
-            lo[a] = min(tri[t, 0, a], min(tri[t, 1, a], tri[t, 2, a]))
-            hi[a] = max(tri[t, 0, a], max(tri[t, 1, a], tri[t, 2, a]))
-        # Most important plane crossing the box, on any axis.
+        # Box extents, and the most important plane crossing the box on any axis.
         best = 0
+        ex = 0.0
+        ey = 0.0
+        ez = 0.0
         for a in range(3):
-            level, _ = _median_plane(lo[a], hi[a], s_lo[a], s_ext[a])
+            lo = np.float64(min(tri[t, 0, a], min(tri[t, 1, a], tri[t, 2, a])))
+            hi = np.float64(max(tri[t, 0, a], max(tri[t, 1, a], tri[t, 2, a])))
+            level, _ = _median_plane(lo, hi, s_lo[a], s_ext[a])
             if level > 0 and (best == 0 or level < best):
                 best = level
+            if a == 0:
+                ex = hi - lo
+            elif a == 1:
+                ey = hi - lo
+            else:
+                ez = hi - lo
         if best == 0:
             continue
-        ex = hi[0] - lo[0]
-        ey = hi[1] - lo[1]
-        ez = hi[2] - lo[2]
         a_box = 2.0 * (ex * ey + ey * ez + ez * ex)
         # Limit of the pieces' box areas: twice the triangle's projected areas.
         e1x = np.float64(tri[t, 1, 0]) - tri[t, 0, 0]
@@ -320,13 +323,41 @@ def _extra(p, scale, cap):
     return np.int64(math.floor(x))
 
 
-@cpu_kernel(parallel=True)
-def _extra_total(p, scale, cap):
-    """Return ``Σ_t min(floor(scale·p[t]), cap)`` (int64, order-independent)."""
-    total = np.int64(0)
-    for t in prange(p.shape[0]):
-        total += _extra(p[t], scale, cap)
-    return total
+@cpu_kernel()
+def _solve_scale(p, cap):
+    """Return the largest scale ``D`` (to float64 bisection) with ``Σ extra(D·p) <= cap``.
+
+    Serial: the sum is over the triangles with ``p > 0`` only and the bracket starts
+    at ``cap / Σp`` (where the sum is about ``cap``), so 40 halvings suffice.
+    """
+    n = p.shape[0]
+    live = np.empty(n, dtype=np.float64)
+    m = 0
+    total_p = 0.0
+    p_max = 0.0
+    for t in range(n):
+        if p[t] > 0:
+            live[m] = p[t]
+            m += 1
+            total_p += p[t]
+            p_max = max(p_max, p[t])
+    if m == 0 or cap <= 0:
+        return 0.0
+    # Σ floor(D·p) <= D·Σp, so D = cap/Σp fits; D = (cap + m)/Σp overshoots unless capped.
+    lo = cap / total_p
+    hi = max((cap + m + 1.0) / total_p, (cap + 1.0) / p_max)
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        total = np.int64(0)
+        for i in range(m):
+            total += _extra(live[i], mid, cap)
+            if total > cap:
+                break
+        if total <= cap:
+            lo = mid
+        else:
+            hi = mid
+    return lo
 
 
 @cpu_kernel(parallel=True)
@@ -426,18 +457,7 @@ def presplit_median(tri: np.ndarray, budget: float, base: float, exponent: float
     s_ext = flat.max(axis=0).astype(np.float64) - s_lo
     p = _median_priorities(tri, s_lo, s_ext, np.float64(base), np.float64(exponent))
     cap = np.int64(int(budget * n))
-    scale = 0.0
-    p_max = float(p.max())
-    if cap > 0 and p_max > 0:
-        # Bisection for the largest scale whose extra pieces fit the budget (monotone).
-        lo, hi = 0.0, (float(cap) + 1.0) / p_max
-        for _ in range(64):
-            mid = 0.5 * (lo + hi)
-            if _extra_total(p, mid, cap) <= cap:
-                lo = mid
-            else:
-                hi = mid
-        scale = lo
+    scale = _solve_scale(p, cap)
     counts = np.zeros(n + 1, dtype=np.int64)
     empty = np.empty((0, 3), dtype=REAL)
     no_prim = np.empty(0, dtype=INDEX)
@@ -474,8 +494,9 @@ def presplit(mesh: TriangleMesh, options: PresplitOptions | None = None) -> Buil
     opt = options or PresplitOptions()
     tri = np.ascontiguousarray(mesh.triangles(), dtype=REAL)
     if opt.method == "evh":
-        flat = tri.reshape(-1, 3).astype(np.float64)
-        volume = float(np.prod(flat.max(axis=0) - flat.min(axis=0)))
+        flat = tri.reshape(-1, 3)
+        extent = flat.max(axis=0).astype(np.float64) - flat.min(axis=0)
+        volume = float(np.prod(extent))
         threshold = volume * 2.0 ** (-float(opt.threshold_exponent))
         return presplit_evh(tri, threshold, int(opt.max_depth))
     return presplit_median(
