@@ -18,6 +18,9 @@ by all threads (per-chunk bins, min/max and integer reductions, so the result do
 not depend on the thread count); the remaining subtrees are built concurrently with
 ``prange``, each into a node block reserved by a prefix sum. The pool is then
 compacted depth-first into the canonical layout. Cost O(n log n).
+
+Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
 from __future__ import annotations

@@ -21,6 +21,9 @@ Degenerate input (all centroids equal) gives equal keys, split by index: a balan
 tree. Keys with 63 bits can nest deeper than ``MAX_DEPTH`` on very skewed scenes;
 the canonical conversion rebalances such subtrees (:mod:`rayaccel.bvh.linked`).
 Cost O(n) after an O(n) radix sort; the fastest builder, with the lowest quality.
+
+Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
 from __future__ import annotations

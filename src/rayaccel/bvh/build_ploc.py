@@ -21,6 +21,9 @@ collapsing, max leaf size 8). Defaults follow the authors' code: ``r = 25``, 60-
 (here 63-bit) Morton codes. Reported quality is close to a binned SAH build
 (Devillers thesis: 26.8 vs 26.4 primary Mrays/s). Cost O(n·r) per iteration, with
 the cluster count shrinking geometrically.
+
+Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
 from __future__ import annotations

@@ -13,6 +13,9 @@ the build O(N log N) (no per-node sorting). Degenerate nodes (a split no better 
 a leaf but too many primitives for one, or a depth that must stay bounded) are cut
 at the median of the longest axis's order, so the depth stays below ``MAX_DEPTH``.
 Serial; use ``bvh2.binned_sah`` for speed.
+
+Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from rayaccel._variant import register
 from rayaccel.bvh._build_common import compact_to_canonical, depth_forces_median, primitive_bounds
 from rayaccel.bvh.build_refs import BuildRefs, check_refs
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
+from rayaccel.dtypes import IntArray
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -224,9 +228,9 @@ def build_sweep_sah(
     Bvh2
     """
     opt = options or SweepSahOptions()
+    ref_prim: IntArray | None = None
     if refs is None:
         prim_lo, prim_hi, centroid = primitive_bounds(mesh.triangles())
-        ref_prim = None
     else:
         refs = check_refs(refs, mesh, "bvh2.sweep_sah")
         prim_lo, prim_hi, ref_prim = refs

@@ -22,9 +22,10 @@ references. No bound on the total number of references.
 Construction of High-Quality Bounding Volume Hierarchies", HPG, §5.9). The spatial
 median planes of the scene box form a hierarchy: level 1 halves an axis, level 2
 quarters it, and so on. A triangle's priority is ``p = (X^-l · (A_aabb −
-A_ideal))^Y``, where ``l`` is the level of the most important plane crossing its box,
-``A_aabb`` the box's surface area and ``A_ideal = Σ_axis |2·projected area|`` the
-limit of its pieces' box areas under infinite splitting. A global scale ``D`` is found
+A_tri))^Y``, where ``l`` is the level of the most important plane crossing its box,
+``A_aabb`` the box's surface area and ``A_tri`` the triangle's area (the paper's
+``A_ideal``, the area its pieces' boxes tend to, is approximated by ``A_tri`` as in
+ALGORITHMS.md §5.6 and madmann91/bvh's splitter). A global scale ``D`` is found
 by bisection (serial, O(N) per halving) so that the extra references ``Σ floor(D·p)``
 stay within ``budget · N``; each triangle is then split recursively into
 ``1 + floor(D·p)`` pieces, always at the most important median plane crossing the
@@ -85,7 +86,7 @@ class PresplitOptions:
         0.3 gives at most 1.3·N references (Karras & Aila use 30–50%).
     priority_base, priority_exponent : float
         Median: ``X`` (>= 1) and ``Y`` (in (0, 4]) of the priority ``(X^-l ·
-        (A_aabb − A_ideal))^Y`` (paper: X = 2, Y = 1/3).
+        (A_aabb − A_tri))^Y`` (paper: X = 2, Y = 1/3).
     """
 
     method: str = "median"
@@ -275,7 +276,7 @@ def _longest_extent(box):
 
 @cpu_kernel(parallel=True)
 def _median_priorities(tri, s_lo, s_ext, base, exponent):
-    """Return the ``(F,)`` float64 priority ``(X^-l · (A_aabb − A_ideal))^Y`` of each triangle."""
+    """Return the ``(F,)`` float64 priority ``(X^-l · (A_aabb − A_tri))^Y`` of each triangle."""
     n = tri.shape[0]
     p = np.zeros(n, dtype=np.float64)
     for t in prange(n):
@@ -299,17 +300,18 @@ def _median_priorities(tri, s_lo, s_ext, base, exponent):
         if best == 0:
             continue
         a_box = 2.0 * (ex * ey + ey * ez + ez * ex)
-        # Limit of the pieces' box areas: twice the triangle's projected areas.
+        # Triangle area (A_ideal of the paper approximated by A_tri).
         e1x = np.float64(tri[t, 1, 0]) - tri[t, 0, 0]
         e1y = np.float64(tri[t, 1, 1]) - tri[t, 0, 1]
         e1z = np.float64(tri[t, 1, 2]) - tri[t, 0, 2]
         e2x = np.float64(tri[t, 2, 0]) - tri[t, 0, 0]
         e2y = np.float64(tri[t, 2, 1]) - tri[t, 0, 1]
         e2z = np.float64(tri[t, 2, 2]) - tri[t, 0, 2]
-        a_ideal = (
-            abs(e1y * e2z - e1z * e2y) + abs(e1z * e2x - e1x * e2z) + abs(e1x * e2y - e1y * e2x)
-        )
-        gain = max(a_box - a_ideal, 0.0)
+        cx = e1y * e2z - e1z * e2y
+        cy = e1z * e2x - e1x * e2z
+        cz = e1x * e2y - e1y * e2x
+        a_tri = 0.5 * math.sqrt(cx * cx + cy * cy + cz * cz)
+        gain = max(a_box - a_tri, 0.0)
         p[t] = (base ** (-best) * gain) ** exponent
     return p
 
