@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -16,6 +17,9 @@ from typing import Any, Literal
 from rayaccel.errors import InvalidInputError, UnknownVariantError
 
 Role = Literal["builder", "traversal", "step"]
+#: When a build step runs: ``"before"`` the builder (it returns the references the builder
+#: builds over) or ``"after"`` it (a post-process of the built structure).
+Stage = Literal["before", "after"]
 
 #: Separates a builder key from the build steps chained after it (``bvh2.lbvh+reinsert``).
 STEP_SEPARATOR = "+"
@@ -33,9 +37,12 @@ class Variant:
     structure : str
         The structure the variant builds or traverses (``"bvh2"``).
     func : callable
-        Builder: ``func(mesh, options) -> structure``. Step: ``func(structure, mesh,
-        options) -> structure`` (a post-process chained after a builder). Traversal:
-        see :mod:`rayaccel.api`.
+        Builder: ``func(mesh, options) -> structure``; a builder that can build over
+        pre-split references also takes ``refs=`` (:attr:`takes_refs`). Step of stage
+        ``"after"``: ``func(structure, mesh, options) -> structure`` (a post-process
+        chained after a builder). Step of stage ``"before"``: ``func(mesh, options) ->
+        BuildRefs`` (:mod:`rayaccel.bvh.build_refs`), the references the builder then
+        builds over. Traversal: see :mod:`rayaccel.api`.
     options : type
         Frozen dataclass of keyword options with defaults.
     summary : str
@@ -43,6 +50,9 @@ class Variant:
     reference : str
         The paper it implements.
     backend : {"cpu", "cuda"}
+    stage : {"before", "after"}
+        When a step runs relative to the builder (see ``func``); ``"after"`` for
+        builders and traversals.
     """
 
     key: str
@@ -53,6 +63,16 @@ class Variant:
     summary: str
     reference: str = ""
     backend: Literal["cpu", "cuda"] = "cpu"
+    stage: Stage = "after"
+
+    @property
+    def takes_refs(self) -> bool:
+        """Whether this builder accepts ``refs=`` (references made by a ``"before"`` step)."""
+        try:
+            parameters = inspect.signature(self.func).parameters
+        except (TypeError, ValueError):
+            return False
+        return self.role == "builder" and "refs" in parameters
 
     def make_options(self, values: Mapping[str, Any] | None = None) -> Any:
         """Return ``options(**values)``; unknown names raise with a suggestion."""
@@ -83,16 +103,26 @@ def register(
     summary: str,
     reference: str = "",
     backend: Literal["cpu", "cuda"] = "cpu",
+    stage: Stage = "after",
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
-    """Decorator registering ``func`` as the variant ``key``."""
+    """Decorator registering ``func`` as the variant ``key``.
+
+    ``stage`` applies to steps only: ``"after"`` (default) for a post-process of the
+    built structure, ``"before"`` for a step that makes the references the builder
+    builds over (see :class:`Variant`).
+    """
     structure = key.replace(STEP_SEPARATOR, ".").split(".", 1)[0]
     if (role == "step") != (STEP_SEPARATOR in key):
         raise ValueError(f"variant {key!r}: steps, and only steps, are named <structure>+<name>")
+    if stage not in ("before", "after") or (role != "step" and stage != "after"):
+        raise ValueError(f"variant {key!r}: stage must be 'before' or 'after' (steps only)")
 
     def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
         if key in REGISTRY and REGISTRY[key].func is not func:
             raise ValueError(f"variant {key!r} registered twice")
-        REGISTRY[key] = Variant(key, role, structure, func, options, summary, reference, backend)
+        REGISTRY[key] = Variant(
+            key, role, structure, func, options, summary, reference, backend, stage
+        )
         return func
 
     return decorate

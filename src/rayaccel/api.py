@@ -56,7 +56,8 @@ class Accel:
     build_ms : float
         Wall-clock build time (includes numba compilation on a process's first build).
     step_ms : dict of str to float
-        Wall-clock time of the builder and of each chained step, by registry key.
+        Wall-clock time of each pre-build step, the builder and each post-build step,
+        by registry key, in the order they ran.
     """
 
     def __init__(
@@ -306,7 +307,10 @@ def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> A
     mesh : TriangleMesh
     key : str
         Builder registry key (``rayaccel list``), e.g. ``"bvh2.binned_sah"``,
-        optionally followed by build steps run in order: ``"bvh2.lbvh+reinsert"``.
+        optionally followed by build steps: ``"bvh2.lbvh+presplit+reinsert"``. A
+        pre-build step (stage ``"before"``, at most one) runs first and makes the
+        references the builder builds over (``refs=``); post-build steps (stage
+        ``"after"``) then run in key order on the built structure.
     **options
         The builder's options (e.g. ``max_leaf_size=4``); a step's options go in a
         dict named after the step (``reinsert={"iterations": 2}``). Unknown names raise.
@@ -320,7 +324,8 @@ def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> A
     UnknownVariantError
         Unknown key or option, with suggestions.
     InvalidInputError
-        ``mesh`` is not a TriangleMesh, or an option is out of range.
+        ``mesh`` is not a TriangleMesh, an option is out of range, the key chains more
+        than one pre-build step, or the builder cannot take pre-built references.
     """
     if not isinstance(mesh, TriangleMesh):
         raise InvalidInputError(
@@ -337,12 +342,32 @@ def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> A
             raise InvalidInputError(f"{name}: step options are a dict, got {values!r}")
         step_opts.append(step.make_options(values))
     opts = variant.make_options(options)
+    before = [(s, o) for s, o in zip(steps, step_opts, strict=True) if s.stage == "before"]
+    after = [(s, o) for s, o in zip(steps, step_opts, strict=True) if s.stage == "after"]
+    if len(before) > 1:
+        raise InvalidInputError(
+            f"{key}: at most one pre-build step per key, got {', '.join(s.key for s, _ in before)}"
+        )
+    if before and not variant.takes_refs:
+        raise InvalidInputError(
+            f"{variant.key} cannot build over the references made by {before[0][0].key} "
+            "(it takes no refs)"
+        )
     start = time.perf_counter()
     step_ms: dict[str, float] = {}
     with config.parallel_section():
-        structure = variant.func(mesh, opts)
-        step_ms[variant.key] = (time.perf_counter() - start) * 1e3
-        for step, step_opt in zip(steps, step_opts, strict=True):
+        refs = None
+        for step, step_opt in before:
+            step_start = time.perf_counter()
+            refs = step.func(mesh, step_opt)
+            step_ms[step.key] = (time.perf_counter() - step_start) * 1e3
+        build_start = time.perf_counter()
+        if refs is None:
+            structure = variant.func(mesh, opts)
+        else:
+            structure = variant.func(mesh, opts, refs=refs)
+        step_ms[variant.key] = (time.perf_counter() - build_start) * 1e3
+        for step, step_opt in after:
             step_start = time.perf_counter()
             structure = step.func(structure, mesh, step_opt)
             step_ms[step.key] = (time.perf_counter() - step_start) * 1e3

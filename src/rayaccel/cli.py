@@ -159,7 +159,9 @@ def cmd_list(args: argparse.Namespace) -> int:
             role: [
                 {"key": v.key, "structure": v.structure, "backend": v.backend,
                  "summary": v.summary, "reference": v.reference,
-                 "options": _option_defaults(v.options)}
+                 "options": _option_defaults(v.options),
+                 **({"stage": v.stage} if v.role == "step" else {}),
+                 **({"takes_refs": v.takes_refs} if v.role == "builder" else {})}
                 for v in registry.variants(role)
             ]
             for role in ("builder", "step", "traversal")
@@ -172,7 +174,7 @@ def cmd_list(args: argparse.Namespace) -> int:
         return 0
     roles = (
         ("builder", "Builders"),
-        ("step", "Build steps (chain as BUILDER+STEP)"),
+        ("step", "Build steps (chain as BUILDER+STEP; 'before' steps run ahead of the builder)"),
         ("traversal", "Traversals"),
     )
     for role, title in roles:
@@ -180,7 +182,12 @@ def cmd_list(args: argparse.Namespace) -> int:
         _out(f"{title} ({len(variants)}):")
         width = max((len(v.key) for v in variants), default=0)
         for v in variants:
-            _out(f"  {v.key:<{width}}  {v.summary}")
+            if v.role == "step":
+                _out(f"  {v.key:<{width}}  [{v.stage}] {v.summary}")
+            elif v.role == "builder" and v.takes_refs:
+                _out(f"  {v.key:<{width}}  {v.summary} (takes pre-split refs)")
+            else:
+                _out(f"  {v.key:<{width}}  {v.summary}")
             if v.reference:
                 _out(f"  {'':<{width}}  ref: {v.reference}")
             options = _option_defaults(v.options)

@@ -1,12 +1,17 @@
 """The variant registry: every builder and traversal, enumerable by key (STYLE §6).
 
 Builders register as ``<structure>.<algorithm>`` (``bvh2.binned_sah``),
-traversals as ``<structure>.<method>`` (``bvh2.stack``) and build steps
-(post-processes) as ``<structure>+<name>`` (``bvh2+reinsert``), each with an options
-dataclass whose fields are the keyword options users may pass. The CLI, the
-benchmark matrix and the conformance tests enumerate the registry, so a new
-variant edits none of them. A build key may chain steps after the builder:
-``bvh2.lbvh+reinsert+collapse`` (:func:`get_chain`). Modules are imported lazily from the explicit
+traversals as ``<structure>.<method>`` (``bvh2.stack``) and build steps as
+``<structure>+<name>`` (``bvh2+reinsert``), each with an options dataclass whose
+fields are the keyword options users may pass. The CLI, the benchmark matrix and the
+conformance tests enumerate the registry, so a new variant edits none of them.
+
+A build key may chain steps after the builder: ``bvh2.lbvh+presplit+reinsert+collapse``
+(:func:`get_chain`). Each step has a *stage*: ``"after"`` steps (the default) are
+post-processes of the built structure and run in key order; a ``"before"`` step
+(``bvh2+presplit``) runs ahead of the builder and makes the references
+(:class:`rayaccel.bvh.build_refs.BuildRefs`) it builds over, for builders that take
+``refs=`` (:attr:`Variant.takes_refs`). Modules are imported lazily from the explicit
 :data:`BUILTIN_MODULES` tuple the first time the registry is read.
 """
 
@@ -15,13 +20,14 @@ from __future__ import annotations
 import difflib
 import importlib
 
-from rayaccel._variant import REGISTRY, STEP_SEPARATOR, Role, Variant, register
+from rayaccel._variant import REGISTRY, STEP_SEPARATOR, Role, Stage, Variant, register
 from rayaccel.errors import UnknownVariantError
 
 __all__ = [
     "BUILTIN_MODULES",
     "CONFIGURATIONS",
     "Role",
+    "Stage",
     "Variant",
     "build_keys",
     "configurations",
@@ -41,6 +47,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.build_sbvh",
     "rayaccel.bvh.build_sweep_sah",
     "rayaccel.bvh.step_collapse",
+    "rayaccel.bvh.step_presplit",
     "rayaccel.bvh.step_reinsert",
     "rayaccel.bvh.step_rotate",
     "rayaccel.bvh.step_treelet",

@@ -13,6 +13,7 @@ import numpy as np
 from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel.bvh.build_refs import remove_leaf_duplicates
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.dtypes import INDEX, REAL, FloatArray
 
@@ -139,10 +140,12 @@ def compact_to_canonical(
     """Turn a node pool rooted at slot 0 into a canonical :class:`Bvh2`.
 
     Leaves keep their ``first`` offsets into ``prim_index``; a builder whose leaves
-    are not in depth-first order of ``prim_index`` must reorder it itself.
+    are not in depth-first order of ``prim_index`` must reorder it itself. With more
+    references than primitives (pre-split input), a leaf's repeated primitives are
+    dropped (:func:`rayaccel.bvh.build_refs.remove_leaf_duplicates`).
     """
     lo, hi, first, count = _compact_kernel(t_lo, t_hi, t_first, t_count, max(n_used, 1))
-    return Bvh2(
+    bvh = Bvh2(
         node_lo=np.ascontiguousarray(lo, dtype=REAL),
         node_hi=np.ascontiguousarray(hi, dtype=REAL),
         node_first=np.ascontiguousarray(first, dtype=INDEX),
@@ -150,3 +153,4 @@ def compact_to_canonical(
         prim_index=np.ascontiguousarray(prim_index, dtype=INDEX),
         n_prims=n_prims,
     )
+    return remove_leaf_duplicates(bvh)

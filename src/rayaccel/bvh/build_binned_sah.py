@@ -18,6 +18,9 @@ by all threads (per-chunk bins, min/max and integer reductions, so the result do
 not depend on the thread count); the remaining subtrees are built concurrently with
 ``prange``, each into a node block reserved by a prefix sum. The pool is then
 compacted depth-first into the canonical layout. Cost O(n log n).
+
+Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import compact_to_canonical, depth_forces_median
+from rayaccel.bvh.build_refs import BuildRefs, check_refs
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
@@ -281,6 +285,15 @@ def _make_refs(triangles):
         ids[i, 3] = i
         refs[i, 7] = 0
     return refs
+
+
+def ref_rows(refs: BuildRefs) -> np.ndarray:
+    """Return the ``(m, 8)`` float32 reference rows (as :func:`_make_refs`) of ``refs``."""
+    rows = np.zeros((refs.n_refs, 8), dtype=np.float32)
+    rows[:, 0:3] = refs.lo
+    rows[:, 4:7] = refs.hi
+    rows.view(np.int32)[:, 3] = refs.prim
+    return rows
 
 
 @cpu_inline
@@ -600,13 +613,17 @@ def _build_frontier(
     summary="top-down binned SAH on centroid bins, parallel over large nodes and subtrees",
     reference="Wald 2007, On fast Construction of SAH-based Bounding Volume Hierarchies",
 )
-def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None) -> Bvh2:
+def build_binned_sah(
+    mesh: TriangleMesh, options: BinnedSahOptions | None = None, refs: BuildRefs | None = None
+) -> Bvh2:
     """Build a binary BVH with the binned surface area heuristic.
 
     Parameters
     ----------
     mesh : TriangleMesh
     options : BinnedSahOptions, optional
+    refs : BuildRefs, optional
+        References to build over (e.g. pre-split triangle parts); default one per triangle.
 
     Returns
     -------
@@ -614,15 +631,18 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
         Canonical tree; depth at most ``MAX_DEPTH``.
     """
     opt = options or BinnedSahOptions()
-    refs = _make_refs(mesh.triangles())
-    n = mesh.n_triangles
+    if refs is None:
+        rows = _make_refs(mesh.triangles())
+    else:
+        rows = ref_rows(check_refs(refs, mesh, "bvh2.binned_sah"))
+    n = rows.shape[0]
     capacity = 2 * n - 1 if n > 0 else 1
     t_lo = np.empty((capacity, 3), dtype=np.float32)
     t_hi = np.empty((capacity, 3), dtype=np.float32)
     t_first = np.zeros(capacity, dtype=np.int32)
     t_count = np.full(capacity, -1, dtype=np.int32)
     box = np.empty(12, dtype=np.float32)
-    _ref_range_bounds(refs, 0, n, box)
+    _ref_range_bounds(rows, 0, n, box)
     t_lo[0], t_hi[0] = box[0:3], box[3:6]
     n_bins = int(opt.n_bins)
     max_leaf = int(opt.max_leaf_size)
@@ -645,13 +665,13 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
             scale[:] = np.where(extent > 0, np.float32(n_bins) * np.float32(0.99999) / extent, 0)
         if (scale > 0).any():
             counts, bin_box = _bin_parallel(
-                refs, begin, end, cb[0:3].copy(), scale, n_bins, n_chunks
+                rows, begin, end, cb[0:3].copy(), scale, n_bins, n_chunks
             )
         else:
             counts = np.zeros((3, 0), dtype=np.int32)
             bin_box = np.zeros((3, 0, 6), dtype=np.float32)
         mid = _split_large(
-            refs,
+            rows,
             begin,
             end,
             depth,
@@ -695,7 +715,7 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
         task_node, task_base, task_cb = task_node[order], task_base[order], task_cb[order]
         with numba.parallel_chunksize(1):
             _build_frontier(
-                refs,
+                rows,
                 task_begin,
                 task_end,
                 task_depth,
@@ -713,5 +733,7 @@ def build_binned_sah(mesh: TriangleMesh, options: BinnedSahOptions | None = None
                 used,
             )
         next_node = pool_end
-    prim_index = np.ascontiguousarray(refs.view(np.int32)[:, 3])
-    return compact_to_canonical(t_lo, t_hi, t_first, t_count, prim_index, n, next_node)
+    prim_index = np.ascontiguousarray(rows.view(np.int32)[:, 3])
+    return compact_to_canonical(
+        t_lo, t_hi, t_first, t_count, prim_index, mesh.n_triangles, next_node
+    )

@@ -21,6 +21,9 @@ Degenerate input (all centroids equal) gives equal keys, split by index: a balan
 tree. Keys with 63 bits can nest deeper than ``MAX_DEPTH`` on very skewed scenes;
 the canonical conversion rebalances such subtrees (:mod:`rayaccel.bvh.linked`).
 Cost O(n) after an O(n) radix sort; the fastest builder, with the lowest quality.
+
+Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import primitive_bounds
+from rayaccel.bvh.build_refs import BuildRefs, check_refs
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
 from rayaccel.bvh.morton import count_leading_zeros, morton_codes
@@ -190,13 +194,17 @@ def build_lbvh_refs(
     reference="Karras 2012, Maximizing Parallelism in the Construction of BVHs, Octrees, and "
     "k-d Trees; Lauterbach et al. 2009",
 )
-def build_lbvh(mesh: TriangleMesh, options: LbvhOptions | None = None) -> Bvh2:
+def build_lbvh(
+    mesh: TriangleMesh, options: LbvhOptions | None = None, refs: BuildRefs | None = None
+) -> Bvh2:
     """Build a linear BVH (see the module docstring).
 
     Parameters
     ----------
     mesh : TriangleMesh
     options : LbvhOptions, optional
+    refs : BuildRefs, optional
+        References to build over (e.g. pre-split triangle parts); default one per triangle.
 
     Returns
     -------
@@ -204,6 +212,9 @@ def build_lbvh(mesh: TriangleMesh, options: LbvhOptions | None = None) -> Bvh2:
         Canonical tree; depth at most ``MAX_DEPTH``.
     """
     opt = options or LbvhOptions()
-    prim_lo, prim_hi, _ = primitive_bounds(mesh.triangles())
-    ids = np.arange(mesh.n_triangles, dtype=np.int32)
+    if refs is None:
+        prim_lo, prim_hi, _ = primitive_bounds(mesh.triangles())
+        ids = np.arange(mesh.n_triangles, dtype=np.int32)
+    else:
+        prim_lo, prim_hi, ids = check_refs(refs, mesh, "bvh2.lbvh")
     return build_lbvh_refs(prim_lo, prim_hi, ids, mesh.n_triangles, opt)

@@ -20,7 +20,8 @@ lowers the SAH, so that large or long triangles no longer inflate whole subtrees
    to float32), intersected with the reference's current box.
 
 Duplication is bounded: references live in one array of ``(1 + duplication_budget)·n``
-slots, each node owning a contiguous capacity that is shared between its children
+slots (``n`` initial references: one per triangle, or the parts a pre-split step
+made), each node owning a contiguous capacity that is shared between its children
 in proportion to their counts; a spatial split that does not fit is not taken.
 Spatial splits are also skipped below depth ``spatial_depth_limit`` (NVIDIA's code
 uses 48) and when the depth bound forces median splits. Leaves reference whole
@@ -54,7 +55,9 @@ from rayaccel.bvh.build_binned_sah import (
     _ref_range_bounds,
     _reset_bins,
     bin_prims,
+    ref_rows,
 )
+from rayaccel.bvh.build_refs import BuildRefs, check_refs
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
 from rayaccel.errors import InvalidInputError
@@ -616,33 +619,40 @@ def _leaf_boxes(refs, left_of, t_first, t_count, lo, hi, n_used):
     summary="SAH BVH with spatial splits: chopped binning, exact clipping, unsplitting",
     reference="Stich, Friedrich, Dietrich 2009, Spatial Splits in Bounding Volume Hierarchies",
 )
-def build_sbvh(mesh: TriangleMesh, options: SbvhOptions | None = None) -> Bvh2:
+def build_sbvh(
+    mesh: TriangleMesh, options: SbvhOptions | None = None, refs: BuildRefs | None = None
+) -> Bvh2:
     """Build a spatial-split BVH (see the module docstring).
 
     Parameters
     ----------
     mesh : TriangleMesh
     options : SbvhOptions, optional
+    refs : BuildRefs, optional
+        Initial references (e.g. pre-split triangle parts); default one per triangle.
+        Spatial splits clip a reference's triangle and intersect with its current box,
+        so split parts are split further correctly.
 
     Returns
     -------
     Bvh2
-        Canonical tree; ``n_refs <= (1 + duplication_budget) · n_prims``; depth at most
-        ``MAX_DEPTH``.
+        Canonical tree; ``n_refs <= (1 + duplication_budget) · m`` for ``m`` initial
+        references (``n_prims`` without ``refs``); depth at most ``MAX_DEPTH``.
     """
     opt = options or SbvhOptions()
     tri = mesh.triangles()
-    n = mesh.n_triangles
+    initial = _make_refs(tri) if refs is None else ref_rows(check_refs(refs, mesh, "bvh2.sbvh"))
+    n = initial.shape[0]
     capacity = n + int(opt.duplication_budget * n)
-    refs = np.zeros((capacity, 8), dtype=np.float32)
-    refs[:n] = _make_refs(tri)
+    rows = np.zeros((capacity, 8), dtype=np.float32)
+    rows[:n] = initial
     pool = 2 * capacity + 1
     left_of = np.full(pool, -1, dtype=np.int32)
     right_of = np.full(pool, -1, dtype=np.int32)
     t_first = np.zeros(pool, dtype=np.int32)
     t_count = np.full(pool, -1, dtype=np.int32)
     box = np.empty(12, dtype=np.float32)
-    _ref_range_bounds(refs, 0, n, box)
+    _ref_range_bounds(rows, 0, n, box)
     ext = (box[3:6] - box[0:3]).astype(np.float64)
     root_area = float(ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0])
     args = (
@@ -659,7 +669,7 @@ def build_sbvh(mesh: TriangleMesh, options: SbvhOptions | None = None) -> Bvh2:
     tasks = np.empty((capacity + 1, 5), dtype=np.int32)
     stop = int(opt.parallel_threshold)
     next_node, n_tasks = _build_sbvh_task(
-        refs, tri, 0, n, capacity, 0, 0, 1, stop, *args, left_of, right_of, t_first, t_count,
+        rows, tri, 0, n, capacity, 0, 0, 1, stop, *args, left_of, right_of, t_first, t_count,
         tasks,
     )  # fmt: skip
     tasks = tasks[:n_tasks]
@@ -677,13 +687,13 @@ def build_sbvh(mesh: TriangleMesh, options: SbvhOptions | None = None) -> Bvh2:
         order = np.argsort(-(tasks[:, 2] - tasks[:, 1]), kind="stable")
         with numba.parallel_chunksize(1):
             _build_frontier(
-                refs, tri, np.ascontiguousarray(tasks[order]), task_base[order], *args,
+                rows, tri, np.ascontiguousarray(tasks[order]), task_base[order], *args,
                 left_of, right_of, t_first, t_count,
             )  # fmt: skip
     lo = np.zeros((next_node, 3), dtype=np.float32)
     hi = np.zeros((next_node, 3), dtype=np.float32)
-    _leaf_boxes(refs, left_of, t_first, t_count, lo, hi, next_node)
-    ids = np.ascontiguousarray(refs.view(np.int32)[:, 3])
+    _leaf_boxes(rows, left_of, t_first, t_count, lo, hi, next_node)
+    ids = np.ascontiguousarray(rows.view(np.int32)[:, 3])
     count = np.maximum(t_count, 0).astype(np.int32)
     tree = LinkedTree(left_of, right_of, lo, hi, t_first, count, ids)
-    return linked_to_canonical(tree, 0, n, collapse=False)
+    return linked_to_canonical(tree, 0, mesh.n_triangles, collapse=False)

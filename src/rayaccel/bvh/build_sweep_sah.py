@@ -13,6 +13,9 @@ the build O(N log N) (no per-node sorting). Degenerate nodes (a split no better 
 a leaf but too many primitives for one, or a depth that must stay bounded) are cut
 at the median of the longest axis's order, so the depth stays below ``MAX_DEPTH``.
 Serial; use ``bvh2.binned_sah`` for speed.
+
+Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
 from __future__ import annotations
@@ -24,7 +27,9 @@ import numpy as np
 from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import compact_to_canonical, depth_forces_median, primitive_bounds
+from rayaccel.bvh.build_refs import BuildRefs, check_refs
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
+from rayaccel.dtypes import IntArray
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -206,21 +211,31 @@ def _sweep_build(
     summary="top-down full-sweep SAH over presorted centroid orders (reference quality)",
     reference="Wald, Boulos, Shirley 2007, Ray Tracing Deformable Scenes using Dynamic BVHs",
 )
-def build_sweep_sah(mesh: TriangleMesh, options: SweepSahOptions | None = None) -> Bvh2:
+def build_sweep_sah(
+    mesh: TriangleMesh, options: SweepSahOptions | None = None, refs: BuildRefs | None = None
+) -> Bvh2:
     """Build a binary BVH evaluating every split of the sorted centroids.
 
     Parameters
     ----------
     mesh : TriangleMesh
     options : SweepSahOptions, optional
+    refs : BuildRefs, optional
+        References to build over (e.g. pre-split triangle parts); default one per triangle.
 
     Returns
     -------
     Bvh2
     """
     opt = options or SweepSahOptions()
-    prim_lo, prim_hi, centroid = primitive_bounds(mesh.triangles())
-    n = mesh.n_triangles
+    ref_prim: IntArray | None = None
+    if refs is None:
+        prim_lo, prim_hi, centroid = primitive_bounds(mesh.triangles())
+    else:
+        refs = check_refs(refs, mesh, "bvh2.sweep_sah")
+        prim_lo, prim_hi, ref_prim = refs
+        centroid = np.float32(0.5) * prim_lo + np.float32(0.5) * prim_hi
+    n = prim_lo.shape[0]
     order = np.empty((3, n), dtype=np.int32)
     for a in range(3):
         # Ties broken by primitive id, so the build is deterministic.
@@ -242,4 +257,7 @@ def build_sweep_sah(mesh: TriangleMesh, options: SweepSahOptions | None = None) 
         t_first,
         t_count,
     )
-    return compact_to_canonical(t_lo, t_hi, t_first, t_count, order[0].copy(), n, int(n_used))
+    prim_index = order[0] if ref_prim is None else ref_prim[order[0]]
+    return compact_to_canonical(
+        t_lo, t_hi, t_first, t_count, prim_index.copy(), mesh.n_triangles, int(n_used)
+    )

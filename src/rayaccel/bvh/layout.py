@@ -6,7 +6,8 @@ Canonical layout (:class:`Bvh2`, what every builder emits)
     children are ``node_first[i]`` and ``node_first[i] + 1``. Node bounds are
     float32 ``node_lo``/``node_hi`` (24 bytes per node, plus 8 for first/count).
     ``prim_index`` holds primitive ids in leaf order; a primitive may appear in
-    several leaves only for spatial-split builders (``n_refs >= n_prims``).
+    several leaves (never twice in one) only for spatial-split builders and pre-split
+    input (``n_refs >= n_prims``).
 
 Packed layout (:class:`PackedBvh2`, Aila & Laine 2009 §3, derived once per accel)
     One 64-byte row per *inner* node holding both children's boxes, so one cache
@@ -136,7 +137,8 @@ class Bvh2:
 
         Checks: array shapes and dtypes; children indices in range and adjacent; every
         node reachable exactly once from the root; depth ``<= MAX_DEPTH``; leaves cover
-        ``prim_index`` exactly once, in order; every primitive referenced at least once;
+        ``prim_index`` exactly once, in order; every primitive referenced at least once
+        and at most once per leaf;
         children boxes inside their parent; and, given ``triangles (F, 3, 3)``, each
         leaf box contains the boxes of its triangles (or, for spatial splits, overlaps them).
         """
@@ -171,11 +173,15 @@ class Bvh2:
             )
         if self.n_refs == self.n_prims and np.unique(self.prim_index).size != self.n_prims:
             raise StructureInvariantError("bvh2: a primitive appears in two leaves")
+        # Leaves tile prim_index in order of their first slot (checked above).
+        leaf = np.flatnonzero(self.node_count > 0)
+        order = np.argsort(self.node_first[leaf], kind="stable")
+        leaf_of_ref = np.repeat(leaf[order], self.node_count[leaf][order])
+        if self.n_refs > self.n_prims:
+            pair = leaf_of_ref.astype(np.int64) * self.n_prims + self.prim_index
+            if np.unique(pair).size != self.n_refs:
+                raise StructureInvariantError("bvh2: a leaf references a primitive twice")
         if triangles is not None:
-            # Leaves tile prim_index in order of their first slot (checked above).
-            leaf = np.flatnonzero(self.node_count > 0)
-            order = np.argsort(self.node_first[leaf], kind="stable")
-            leaf_of_ref = np.repeat(leaf[order], self.node_count[leaf][order])
             tri = triangles[self.prim_index]
             tri_lo, tri_hi = tri.min(axis=1), tri.max(axis=1)
             exact = self.n_refs == self.n_prims

@@ -20,6 +20,10 @@ a range ``first:first + count`` into a reference array. Node ids carry no order.
    Morton-ordered build keeps spatial coherence). It fires at the first node on the
    path where ``depth + ceil(log2(leaves)) >= MAX_DEPTH - 1``, so the balanced
    subtree always fits; ordinary trees are never touched.
+
+A tree with more references than primitives (spatial splits, pre-split input) may
+collapse two pieces of one triangle into one leaf; the copies are then dropped
+(:func:`rayaccel.bvh.build_refs.remove_leaf_duplicates`, Karras & Aila 2013 §5.9).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import numpy as np
 
 from rayaccel._jit import cpu_kernel
 from rayaccel.bvh._build_common import ceil_log2
+from rayaccel.bvh.build_refs import remove_leaf_duplicates
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.bvh.refit import refit_collapse
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
@@ -250,7 +255,7 @@ def linked_to_canonical(
         n_eff,
         n_prim,
     )
-    return Bvh2(
+    bvh = Bvh2(
         node_lo=np.ascontiguousarray(lo, dtype=REAL),
         node_hi=np.ascontiguousarray(hi, dtype=REAL),
         node_first=np.ascontiguousarray(first, dtype=INDEX),
@@ -258,3 +263,4 @@ def linked_to_canonical(
         prim_index=np.ascontiguousarray(prim, dtype=INDEX),
         n_prims=n_prims,
     )
+    return remove_leaf_duplicates(bvh)

@@ -614,8 +614,11 @@ class TraversalState:
     Building block 5 of Binder & Keller 2016: the state of a constant-time traversal
     is its node, parent row, key and bit trail (plus the position inside a leaf), so
     it can stop at a hit and continue from there later instead of from the root.
-    Every triangle hit within ``[tmin, tmax]`` is reported exactly once, in traversal
-    order (near subtrees first, so roughly front to back, but not sorted).
+    Every triangle hit within ``[tmin, tmax]`` is reported in traversal order (near
+    subtrees first, so roughly front to back, but not sorted): once per leaf the ray
+    enters that references it, so exactly once unless the tree references a triangle
+    from several leaves (``n_refs > n_prims``: spatial splits, pre-splitting), where
+    :meth:`all_hits` removes the repeats.
 
     Use :func:`start_traversal` or ``Accel.traversal_state`` to make one.
     """
@@ -667,7 +670,8 @@ class TraversalState:
         -------
         ray, t, prim, u, v : (n_hits,) arrays
             One entry per triangle hit within the interval, sorted by ray, then ``t``,
-            then primitive id.
+            then primitive id (a triangle referenced from several leaves that
+            :meth:`next_hits` met more than once is listed once).
         """
         parts: list[tuple[np.ndarray, ...]] = []
         rounds = 0
@@ -686,7 +690,12 @@ class TraversalState:
         u = np.concatenate([p[3] for p in parts])
         v = np.concatenate([p[4] for p in parts])
         order = np.lexsort((prim, t, ray))
-        return ray[order], t[order], prim[order], u[order], v[order]
+        ray, t, prim, u, v = ray[order], t[order], prim[order], u[order], v[order]
+        # A triangle in several leaves (spatial splits, pre-splitting) is met once per
+        # leaf entered, with the same t: keep the first of each (ray, prim) run.
+        first = np.ones(ray.shape[0], dtype=bool)
+        first[1:] = (ray[1:] != ray[:-1]) | (prim[1:] != prim[:-1]) | (t[1:] != t[:-1])
+        return ray[first], t[first], prim[first], u[first], v[first]
 
 
 def start_traversal(
