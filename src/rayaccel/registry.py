@@ -10,7 +10,7 @@ A build key may chain steps after the builder: ``bvh2.lbvh+presplit+reinsert+col
 (:func:`get_chain`). Each step has a *stage*: ``"after"`` steps (the default) are
 post-processes of the built structure and run in key order; a ``"before"`` step
 (``bvh2+presplit``) runs ahead of the builder and makes the references
-(:class:`rayaccel.bvh.build_refs.BuildRefs`) it builds over, for builders that take
+(:class:`rayaccel.bvh.refs.BuildRefs`) it builds over, for builders that take
 ``refs=`` (:attr:`Variant.takes_refs`). Modules are imported lazily from the explicit
 :data:`BUILTIN_MODULES` tuple the first time the registry is read.
 """

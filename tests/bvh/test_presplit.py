@@ -11,8 +11,8 @@ import pytest
 import rayaccel
 import reference
 from rayaccel import registry
-from rayaccel.bvh.build_refs import BuildRefs, remove_leaf_duplicates, triangle_refs
 from rayaccel.bvh.layout import Bvh2
+from rayaccel.bvh.refs import BuildRefs, remove_leaf_duplicates, triangle_refs
 from rayaccel.bvh.step_presplit import PresplitOptions, presplit
 from rayaccel.errors import InvalidInputError
 

@@ -13,8 +13,8 @@ import numpy as np
 from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
-from rayaccel.bvh.build_refs import remove_leaf_duplicates
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
+from rayaccel.bvh.refs import remove_leaf_duplicates
 from rayaccel.dtypes import INDEX, REAL, FloatArray
 
 
@@ -142,7 +142,7 @@ def compact_to_canonical(
     Leaves keep their ``first`` offsets into ``prim_index``; a builder whose leaves
     are not in depth-first order of ``prim_index`` must reorder it itself. With more
     references than primitives (pre-split input), a leaf's repeated primitives are
-    dropped (:func:`rayaccel.bvh.build_refs.remove_leaf_duplicates`).
+    dropped (:func:`rayaccel.bvh.refs.remove_leaf_duplicates`).
     """
     lo, hi, first, count = _compact_kernel(t_lo, t_hi, t_first, t_count, max(n_used, 1))
     bvh = Bvh2(

@@ -19,7 +19,7 @@ not depend on the thread count); the remaining subtrees are built concurrently w
 ``prange``, each into a node block reserved by a prefix sum. The pool is then
 compacted depth-first into the canonical layout. Cost O(n log n).
 
-Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+Given ``refs`` (:class:`~rayaccel.bvh.refs.BuildRefs`, e.g. from ``+presplit``),
 it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
@@ -34,8 +34,8 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import compact_to_canonical, depth_forces_median
-from rayaccel.bvh.build_refs import BuildRefs, check_refs
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
+from rayaccel.bvh.refs import BuildRefs, check_refs
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 

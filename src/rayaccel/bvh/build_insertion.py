@@ -37,7 +37,6 @@ primitives identical). Serial and deterministic for a given seed.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -50,6 +49,7 @@ from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
 from rayaccel.bvh.morton import morton_codes
 from rayaccel.bvh.radix_sort import radix_sort
 from rayaccel.bvh.refit import half_area
+from rayaccel.bvh.refs import BuildRefs, check_refs
 from rayaccel.bvh.step_reinsert import attach_sibling, find_best_sibling, union_area
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
@@ -222,7 +222,7 @@ def build_insertion_refs(
     reference="Goldsmith & Salmon 1987, Automatic Creation of Object Hierarchies for Ray Tracing",
 )
 def build_insertion(
-    mesh: TriangleMesh, options: InsertionOptions | None = None, *, refs: Any = None
+    mesh: TriangleMesh, options: InsertionOptions | None = None, refs: BuildRefs | None = None
 ) -> Bvh2:
     """Build a BVH by insertion (see the module docstring).
 
@@ -230,8 +230,8 @@ def build_insertion(
     ----------
     mesh : TriangleMesh
     options : InsertionOptions, optional
-    refs : object with ``lo``, ``hi`` ``(m, 3)`` and ``prim`` ``(m,)``, optional
-        Pre-split references to build over instead of the triangles' boxes.
+    refs : BuildRefs, optional
+        Pre-split references (``+presplit``) to build over instead of the triangles' boxes.
 
     Returns
     -------
@@ -243,7 +243,5 @@ def build_insertion(
         prim_lo, prim_hi, _ = primitive_bounds(mesh.triangles())
         prim_id = np.arange(mesh.n_triangles, dtype=np.int32)
     else:
-        prim_lo = np.ascontiguousarray(refs.lo, dtype=np.float32)
-        prim_hi = np.ascontiguousarray(refs.hi, dtype=np.float32)
-        prim_id = np.ascontiguousarray(refs.prim, dtype=np.int32)
+        prim_lo, prim_hi, prim_id = check_refs(refs, mesh, "bvh2.insertion")
     return build_insertion_refs(prim_lo, prim_hi, prim_id, mesh.n_triangles, opt)

@@ -22,7 +22,7 @@ tree. Keys with 63 bits can nest deeper than ``MAX_DEPTH`` on very skewed scenes
 the canonical conversion rebalances such subtrees (:mod:`rayaccel.bvh.linked`).
 Cost O(n) after an O(n) radix sort; the fastest builder, with the lowest quality.
 
-Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+Given ``refs`` (:class:`~rayaccel.bvh.refs.BuildRefs`, e.g. from ``+presplit``),
 it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
@@ -36,11 +36,11 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import primitive_bounds
-from rayaccel.bvh.build_refs import BuildRefs, check_refs
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
 from rayaccel.bvh.morton import count_leading_zeros, morton_codes
 from rayaccel.bvh.radix_sort import radix_sort
+from rayaccel.bvh.refs import BuildRefs, check_refs
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 

@@ -22,7 +22,7 @@ collapsing, max leaf size 8). Defaults follow the authors' code: ``r = 25``, 60-
 (Devillers thesis: 26.8 vs 26.4 primary Mrays/s). Cost O(n·r) per iteration, with
 the cluster count shrinking geometrically.
 
-Given ``refs`` (:class:`~rayaccel.bvh.build_refs.BuildRefs`, e.g. from ``+presplit``),
+Given ``refs`` (:class:`~rayaccel.bvh.refs.BuildRefs`, e.g. from ``+presplit``),
 it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
@@ -37,9 +37,9 @@ from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import primitive_bounds
 from rayaccel.bvh.build_lbvh import check_leaf_costs, sorted_leaf_tree
-from rayaccel.bvh.build_refs import BuildRefs, check_refs
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import linked_to_canonical
+from rayaccel.bvh.refs import BuildRefs, check_refs
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 

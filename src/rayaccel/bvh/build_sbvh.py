@@ -57,9 +57,9 @@ from rayaccel.bvh.build_binned_sah import (
     bin_prims,
     ref_rows,
 )
-from rayaccel.bvh.build_refs import BuildRefs, check_refs
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
+from rayaccel.bvh.refs import BuildRefs, check_refs
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 

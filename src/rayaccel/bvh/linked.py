@@ -23,7 +23,7 @@ a range ``first:first + count`` into a reference array. Node ids carry no order.
 
 A tree with more references than primitives (spatial splits, pre-split input) may
 collapse two pieces of one triangle into one leaf; the copies are then dropped
-(:func:`rayaccel.bvh.build_refs.remove_leaf_duplicates`, Karras & Aila 2013 §5.9).
+(:func:`rayaccel.bvh.refs.remove_leaf_duplicates`, Karras & Aila 2013 §5.9).
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ import numpy as np
 
 from rayaccel._jit import cpu_kernel
 from rayaccel.bvh._build_common import ceil_log2
-from rayaccel.bvh.build_refs import remove_leaf_duplicates
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.bvh.refit import refit_collapse
+from rayaccel.bvh.refs import remove_leaf_duplicates
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 
 
