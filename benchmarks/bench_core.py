@@ -34,6 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES))
     parser.add_argument("--accel", nargs="+", default=[], help="builder keys (default all)")
+    parser.add_argument(
+        "--traversals", nargs="+", default=[], help="traversal keys (default all)"
+    )
     parser.add_argument("--threads", default="", help="e.g. 2 or 1,2 (default all cores)")
     parser.add_argument("--peers", default="all", help="embree,open3d,trimesh, all or none")
     parser.add_argument("--rays", default="primary,diffuse,shadow")
@@ -59,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     config = harness.BenchConfig(
         scenes=args.scenes,
         builders=args.accel,
+        traversals=args.traversals,
         ray_kinds=parse_kinds(args.rays),
         threads=threads,
         peers=parse_peers(args.peers),
