@@ -1,8 +1,8 @@
-"""The 4-wide traversal ``bvh2.wide``: the vector box test, the collapsed rows, edge cases.
+"""The wide traversal ``bvh2.wide``: the vector box tests, the collapsed rows, edge cases.
 
-The registry-driven conformance suite checks ``bvh2.wide`` against the brute-force
-oracle on every scene; here the 4-lane slab test is compared with the scalar one
-lane by lane, the collapsed rows are checked against the binary tree they come from,
+The registry-driven conformance suite checks ``bvh2.wide`` (width 4) against the
+brute-force oracle on every scene; here the 4- and 8-lane slab tests are compared with
+the scalar one lane by lane, the collapsed rows are checked against the binary tree they come from,
 and the degenerate trees of the stackless tests are traced.
 """
 
@@ -16,49 +16,59 @@ import reference
 from rayaccel._jit import cpu_kernel
 from rayaccel.bvh.layout import MAX_DEPTH
 from rayaccel.bvh.traverse_stack import packed_layout
-from rayaccel.bvh.wide import COUNT_COLUMN, REF_COLUMN, WIDTH, wide_layout
+from rayaccel.bvh.wide import WIDTHS, count_column, ref_column, wide_layout
+from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb import ray_box_entry
-from rayaccel.kernels.aabb_wide import slab_test4
+from rayaccel.kernels.aabb_wide import slab_test4, slab_test8
 from rayaccel.rays.batch import RayBatch
 
 
 @cpu_kernel()
-def _both_tests(rows, origin, inv, t_lo, t_hi, wide_t, wide_mask, scalar_t):
-    """Every ray against every row: 4-lane test and the scalar test of each lane."""
-    lane_t = np.empty(WIDTH, dtype=np.float32)
+def _both_tests(rows, width, origin, inv, t_lo, t_hi, wide_t, wide_mask, scalar_t):
+    """Every ray against every row: the vector test and the scalar test of each lane."""
+    lane_t = np.empty(width, dtype=np.float32)
     for r in range(origin.shape[0]):
         ox, oy, oz = origin[r, 0], origin[r, 1], origin[r, 2]
         ix, iy, iz = inv[r, 0], inv[r, 1], inv[r, 2]
-        nx = 0 if ix >= 0 else 4
-        ny = 8 if iy >= 0 else 12
-        nz = 16 if iz >= 0 else 20
+        nx = 0 if ix >= 0 else width
+        ny = 2 * width if iy >= 0 else 3 * width
+        nz = 4 * width if iz >= 0 else 5 * width
+        fx, fy, fz = width - nx, 5 * width - ny, 9 * width - nz
         for w in range(rows.shape[0]):
-            wide_mask[r, w] = slab_test4(
-                rows, w, nx, 4 - nx, ny, 20 - ny, nz, 36 - nz,
-                ox, oy, oz, ix, iy, iz, t_lo[r], t_hi[r], lane_t,
-            )  # fmt: skip
-            for j in range(WIDTH):
+            if width == 8:
+                wide_mask[r, w] = slab_test8(
+                    rows, w, nx, fx, ny, fy, nz, fz, ox, oy, oz, ix, iy, iz, t_lo[r], t_hi[r],
+                    lane_t,
+                )  # fmt: skip
+            else:
+                wide_mask[r, w] = slab_test4(
+                    rows, w, nx, fx, ny, fy, nz, fz, ox, oy, oz, ix, iy, iz, t_lo[r], t_hi[r],
+                    lane_t,
+                )  # fmt: skip
+            for j in range(width):
                 wide_t[r, w, j] = lane_t[j]
                 scalar_t[r, w, j] = ray_box_entry(
                     ox, oy, oz, ix, iy, iz,
                     rows[w, nx + j], rows[w, ny + j], rows[w, nz + j],
-                    rows[w, 4 - nx + j], rows[w, 20 - ny + j], rows[w, 36 - nz + j],
+                    rows[w, fx + j], rows[w, fy + j], rows[w, fz + j],
                     t_lo[r], t_hi[r],
                 )  # fmt: skip
 
 
-def test_vector_slab_test_matches_the_scalar_one_lane_by_lane():
+@pytest.mark.parametrize("width", WIDTHS)
+def test_vector_slab_test_matches_the_scalar_one_lane_by_lane(width):
     rng = np.random.default_rng(0)
     n_rows, n_rays = 64, 400
-    lo = rng.uniform(-2, 1, (n_rows, WIDTH, 3)).astype(np.float32)
+    lo = rng.uniform(-2, 1, (n_rows, width, 3)).astype(np.float32)
     hi = (lo + rng.uniform(0, 2, lo.shape)).astype(np.float32)
     hi[::5, 1, 0] = lo[::5, 1, 0]  # flat boxes
-    rows = np.zeros((n_rows, 32), np.float32)
+    rows = np.zeros((n_rows, 8 * width), np.float32)
     for a in range(3):
-        rows[:, 8 * a : 8 * a + 4] = lo[:, :, a]
-        rows[:, 8 * a + 4 : 8 * a + 8] = hi[:, :, a]
-    rows[::3, [3, 11, 19]] = np.inf  # empty lane, as the collapse writes it
-    rows[::3, [7, 15, 23]] = -np.inf
+        rows[:, 2 * a * width : (2 * a + 1) * width] = lo[:, :, a]
+        rows[:, (2 * a + 1) * width : (2 * a + 2) * width] = hi[:, :, a]
+    last = [(k + 1) * width - 1 for k in range(6)]
+    rows[::3, last[0::2]] = np.inf  # empty last lane, as the collapse writes it
+    rows[::3, last[1::2]] = -np.inf
     origin = rng.uniform(-3, 3, (n_rays, 3)).astype(np.float32)
     direction = rng.normal(size=(n_rays, 3)).astype(np.float32)
     direction[::4, rng.integers(0, 3)] = 0.0  # zero components: inv = ±inf
@@ -70,25 +80,26 @@ def test_vector_slab_test_matches_the_scalar_one_lane_by_lane():
     t_hi = np.where(rng.random(n_rays) < 0.5, np.inf, rng.uniform(0.5, 5, n_rays)).astype(
         np.float32
     )
-    wide_t = np.empty((n_rays, n_rows, WIDTH), np.float32)
+    wide_t = np.empty((n_rays, n_rows, width), np.float32)
     scalar_t = np.empty_like(wide_t)
     mask = np.empty((n_rays, n_rows), np.int32)
-    _both_tests(rows, origin, inv, t_lo, t_hi, wide_t, mask, scalar_t)
+    _both_tests(rows, width, origin, inv, t_lo, t_hi, wide_t, mask, scalar_t)
     assert np.array_equal(wide_t, scalar_t)
-    bits = (mask[:, :, None] >> np.arange(WIDTH)) & 1
+    bits = (mask[:, :, None] >> np.arange(width)) & 1
     assert np.array_equal(bits == 1, wide_t < np.inf)
-    assert not (wide_t[:, ::3, 3] < np.inf).any()
+    assert not (wide_t[:, ::3, width - 1] < np.inf).any()
     assert 500 < (wide_t < np.inf).sum() < wide_t.size // 2
 
 
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("scene", ["teapot", "teapot-in-stadium"])
-def test_collapsed_rows_reproduce_the_binary_tree(scene):
+def test_collapsed_rows_reproduce_the_binary_tree(scene, width):
     accel = rayaccel.build(rayaccel.scenes.get(scene))
     packed = packed_layout(accel.structure, accel.mesh, None)
-    wide = wide_layout(packed)
+    wide = wide_layout(packed, width)
     rows, refs = wide.rows, wide.rows.view(np.int32)
-    count = refs[:, COUNT_COLUMN]
-    assert ((count >= 2) & (count <= WIDTH)).all()
+    count = refs[:, count_column(width)]
+    assert ((count >= 2) & (count <= width)).all()
     assert wide.n_rows <= packed.rows.shape[0]
     # Every binary leaf hangs under exactly one wide lane, with its own box.
     binary_box = {}
@@ -100,30 +111,31 @@ def test_collapsed_rows_reproduce_the_binary_tree(scene):
     leaves, inner = [], []
     for w in range(wide.n_rows):
         for j in range(count[w]):
-            ref = int(refs[w, REF_COLUMN + j])
+            ref = int(refs[w, ref_column(width) + j])
             (inner if ref >= 0 else leaves).append(ref)
             if ref < 0:
-                box = [rows[w, 8 * a + 4 * s + j] for a in range(3) for s in range(2)]
+                box = [rows[w, (2 * a + s) * width + j] for a in range(3) for s in range(2)]
                 assert np.array_equal(box, binary_box[ref])
-        # A row with an inner child at rank < 4 was filled to four children.
-        if any(refs[w, REF_COLUMN + j] >= 0 for j in range(count[w])):
-            assert count[w] == WIDTH
+        # A row with an inner child was filled to ``width`` children.
+        if any(refs[w, ref_column(width) + j] >= 0 for j in range(count[w])):
+            assert count[w] == width
     assert sorted(leaves) == sorted(range(-packed.leaf_first.shape[0], 0))
     assert sorted(inner) == list(range(1, wide.n_rows))
 
 
-def test_same_closest_t_and_occlusion_as_the_stack_traversal():
+@pytest.mark.parametrize("width", WIDTHS)
+def test_same_closest_t_and_occlusion_as_the_stack_traversal(width):
     for scene in ("soup", "cornell-box", "teapot-in-stadium"):
         accel = rayaccel.build(rayaccel.scenes.get(scene), "bvh2.lbvh")
         rays = reference.mixed_rays(accel.mesh, n=900)
         ref = accel.trace(rays, stats=True)
-        hits = accel.trace(rays, traversal="bvh2.wide", stats=True)
+        hits = accel.trace(rays, traversal="bvh2.wide", stats=True, width=width)
         assert hits.t.tobytes() == ref.t.tobytes(), scene
         ties = np.flatnonzero(hits.prim != ref.prim)
         again = reference.eval_prims(reference.tri9(accel.mesh), rays.subset(ties), hits.prim[ties])
         assert again.t.tobytes() == ref.t[ties].tobytes(), scene
         occluded = accel.occluded(
-            rays.origin, rays.direction, rays.tmin, rays.tmax, traversal="bvh2.wide"
+            rays.origin, rays.direction, rays.tmin, rays.tmax, traversal="bvh2.wide", width=width
         )
         assert np.array_equal(
             occluded, accel.occluded(rays.origin, rays.direction, rays.tmin, rays.tmax)
@@ -131,22 +143,28 @@ def test_same_closest_t_and_occlusion_as_the_stack_traversal():
         # Half the steps of the binary traversal or fewer, more box tests per step.
         visited = ref.stats["nodes"] > 0
         assert hits.stats["nodes"][visited].sum() < 0.75 * ref.stats["nodes"][visited].sum()
-        assert (hits.stats["stack_peak"] <= 3 * MAX_DEPTH).all()
+        assert (hits.stats["stack_peak"] <= (width - 1) * MAX_DEPTH).all()
 
 
-def test_counters_and_bytes():
+def test_counters_bytes_and_options():
     accel = rayaccel.build(rayaccel.scenes.get("teapot"))
     rays = reference.mixed_rays(accel.mesh, n=400)
     hits = accel.trace(rays, traversal="bvh2.wide", stats=True)
+    eight = accel.trace(rays, traversal="bvh2.wide", stats=True, width=8).stats
     s = hits.stats
+    assert eight["nodes"].sum() < s["nodes"].sum()
+    assert eight["bytes"].sum() > 0
+    with pytest.raises(InvalidInputError, match="width"):
+        accel.intersect(rays.origin, rays.direction, traversal="bvh2.wide", width=6)
     assert (s["steps"] == s["nodes"]).all()
     assert (s["box_tests"] >= s["nodes"]).all()
     assert (s["box_tests"][s["nodes"] > 1] > 2 * s["nodes"][s["nodes"] > 1] - 2).all()
-    wide = accel.derived("bvh2.wide")
-    assert wide is not None
-    assert wide.nbytes() == wide.rows.nbytes
+    wide4, wide8 = accel.derived("bvh2.wide4"), accel.derived("bvh2.wide8")
+    assert wide4 is not None
+    assert wide8 is not None
+    assert wide4.nbytes() == wide4.rows.nbytes
     info = accel.info()
-    assert info["bytes"] >= accel.structure.nbytes() + wide.nbytes()
+    assert info["bytes"] >= accel.structure.nbytes() + wide4.nbytes() + wide8.nbytes()
 
 
 def test_deep_chain_and_identical_triangles():
@@ -157,17 +175,20 @@ def test_deep_chain_and_identical_triangles():
     rays = RayBatch(o, d)
     cache: dict = {}
     stack = rayaccel.registry.get("bvh2.stack").func
-    wide = rayaccel.registry.get("bvh2.wide").func
+    wide = rayaccel.registry.get("bvh2.wide")
     ref = stack(bvh, mesh, rays, cache=cache)
-    hits = wide(bvh, mesh, rays, cache=cache)
     assert ref.hit.sum() > 100
-    assert hits.t.tobytes() == ref.t.tobytes()
+    for width in WIDTHS:
+        options = wide.make_options({"width": width})
+        hits = wide.func(bvh, mesh, rays, options=options, cache=cache)
+        assert hits.t.tobytes() == ref.t.tobytes()
     n = 20_000
     tri = np.tile([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], (n, 1))
     accel = rayaccel.build(
         rayaccel.TriangleMesh(tri, np.arange(3 * n).reshape(n, 3)), max_leaf_size=1
     )
     ref = accel.intersect(o, d)
-    hits = accel.intersect(o, d, traversal="bvh2.wide")
-    assert hits.t.tobytes() == ref.t.tobytes()
-    assert np.array_equal(hits.hit, ref.hit)
+    for width in WIDTHS:
+        hits = accel.intersect(o, d, traversal="bvh2.wide", width=width)
+        assert hits.t.tobytes() == ref.t.tobytes()
+        assert np.array_equal(hits.hit, ref.hit)

@@ -14,8 +14,9 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
-from rayaccel.bvh.refs import remove_leaf_duplicates
+from rayaccel.bvh.refs import BuildRefs, check_refs, remove_leaf_duplicates
 from rayaccel.dtypes import INDEX, REAL, FloatArray
+from rayaccel.scene.mesh import TriangleMesh
 
 
 @cpu_kernel(parallel=True)
@@ -39,6 +40,21 @@ def primitive_bounds(triangles):
             hi[i, a] = high
             centroid[i, a] = np.float32(0.5) * low + np.float32(0.5) * high
     return lo, hi, centroid
+
+
+def reference_boxes(
+    mesh: TriangleMesh, refs: BuildRefs | None, builder: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return ``(lo, hi, prim)`` of the references a builder builds over.
+
+    One reference per triangle (its box, computed in parallel) when ``refs`` is None,
+    else the checked pre-built ``refs`` (``+presplit``); errors name ``builder``.
+    """
+    if refs is None:
+        lo, hi, _ = primitive_bounds(mesh.triangles())
+        return lo, hi, np.arange(mesh.n_triangles, dtype=np.int32)
+    lo, hi, prim = check_refs(refs, mesh, builder)
+    return lo, hi, prim
 
 
 def _range_bounds_py(index, begin, end, prim_lo, prim_hi, centroid, out):

@@ -42,14 +42,14 @@ import numpy as np
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import primitive_bounds
+from rayaccel.bvh._build_common import reference_boxes
 from rayaccel.bvh.build_lbvh import check_leaf_costs
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
 from rayaccel.bvh.morton import morton_codes
 from rayaccel.bvh.radix_sort import radix_sort
 from rayaccel.bvh.refit import half_area
-from rayaccel.bvh.refs import BuildRefs, check_refs
+from rayaccel.bvh.refs import BuildRefs
 from rayaccel.bvh.step_reinsert import attach_sibling, find_best_sibling, union_area
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
@@ -239,9 +239,5 @@ def build_insertion(
         Canonical tree; depth at most ``MAX_DEPTH``.
     """
     opt = options or InsertionOptions()
-    if refs is None:
-        prim_lo, prim_hi, _ = primitive_bounds(mesh.triangles())
-        prim_id = np.arange(mesh.n_triangles, dtype=np.int32)
-    else:
-        prim_lo, prim_hi, prim_id = check_refs(refs, mesh, "bvh2.insertion")
+    prim_lo, prim_hi, prim_id = reference_boxes(mesh, refs, "bvh2.insertion")
     return build_insertion_refs(prim_lo, prim_hi, prim_id, mesh.n_triangles, opt)

@@ -35,12 +35,12 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import primitive_bounds
+from rayaccel.bvh._build_common import reference_boxes
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
 from rayaccel.bvh.morton import count_leading_zeros, morton_codes
 from rayaccel.bvh.radix_sort import radix_sort
-from rayaccel.bvh.refs import BuildRefs, check_refs
+from rayaccel.bvh.refs import BuildRefs
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -212,9 +212,5 @@ def build_lbvh(
         Canonical tree; depth at most ``MAX_DEPTH``.
     """
     opt = options or LbvhOptions()
-    if refs is None:
-        prim_lo, prim_hi, _ = primitive_bounds(mesh.triangles())
-        ids = np.arange(mesh.n_triangles, dtype=np.int32)
-    else:
-        prim_lo, prim_hi, ids = check_refs(refs, mesh, "bvh2.lbvh")
+    prim_lo, prim_hi, ids = reference_boxes(mesh, refs, "bvh2.lbvh")
     return build_lbvh_refs(prim_lo, prim_hi, ids, mesh.n_triangles, opt)

@@ -35,11 +35,11 @@ from numba import prange
 
 from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import primitive_bounds
+from rayaccel.bvh._build_common import reference_boxes
 from rayaccel.bvh.build_lbvh import check_leaf_costs, sorted_leaf_tree
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import linked_to_canonical
-from rayaccel.bvh.refs import BuildRefs, check_refs
+from rayaccel.bvh.refs import BuildRefs
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -206,9 +206,5 @@ def build_ploc(
         Canonical tree; depth at most ``MAX_DEPTH``.
     """
     opt = options or PlocOptions()
-    if refs is None:
-        prim_lo, prim_hi, _ = primitive_bounds(mesh.triangles())
-        ids = np.arange(mesh.n_triangles, dtype=np.int32)
-    else:
-        prim_lo, prim_hi, ids = check_refs(refs, mesh, "bvh2.ploc")
+    prim_lo, prim_hi, ids = reference_boxes(mesh, refs, "bvh2.ploc")
     return build_ploc_refs(prim_lo, prim_hi, ids, mesh.n_triangles, opt)

@@ -1,13 +1,13 @@
-"""Ordered stack traversal of the 4-wide form of a binary BVH (``bvh2.wide``).
+"""Ordered stack traversal of the 4- or 8-wide form of a binary BVH (``bvh2.wide``).
 
 Wald, Benthin, Boulos 2008, "Getting Rid of Packets — Efficient SIMD Single-Ray
 Traversal using Multi-branching BVHs"; Dammertz, Hanika, Keller 2008, "Shallow
 Bounding Volume Hierarchies for Fast SIMD Ray Tracing of Incoherent Rays". The
-binary tree any ``bvh2`` builder made is collapsed once per accel into 4-wide rows
-(:mod:`rayaccel.bvh.wide`, cached as ``"bvh2.wide"``); a traversal step tests the
-four child boxes of one row as four lanes of the same slab arithmetic (the lane
-loop is written so LLVM's vectorizer turns each slab into one 4-wide instruction),
-then visits the hit children nearest first: the nearest becomes the next node, the
+binary tree any ``bvh2`` builder made is collapsed once per accel into rows of
+``width`` = 4 (default) or 8 children (:mod:`rayaccel.bvh.wide`, cached as
+``"bvh2.wide4"`` / ``"bvh2.wide8"``); a traversal step tests the child boxes of one
+row as the lanes of one vector slab test (:mod:`rayaccel.kernels.aabb_wide`), then
+visits the hit children nearest first: the nearest becomes the next node, the
 others are pushed farthest first with their entry distances. As in ``bvh2.stack``
 popped entries beyond the closest hit are dropped unfetched, and leaves, the
 triangle test, the box test's robustness (Ize 2013 2-ulp exit widening) and the
@@ -22,7 +22,8 @@ agree on whether a ray is occluded.
 Counters: ``steps`` loop iterations, ``nodes`` nodes entered (wide rows and
 leaves), ``box_tests`` child boxes tested (the real children of each row, not the
 empty lanes), ``prim_tests``, ``stack_peak``, ``bytes`` (128 per wide row, 8 per leaf
-record, 40 per triangle and reference, 8 per stack push and pop).
+record, 40 per triangle and reference, 8 per stack push and pop); 256 per row for
+``width=8``.
 """
 
 from __future__ import annotations
@@ -47,27 +48,44 @@ from rayaccel.bvh.layout import (
 )
 from rayaccel.bvh.traversal_steps import box_entry, intersect_leaf, ray_prologue
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
-from rayaccel.bvh.wide import COUNT_COLUMN, REF_COLUMN, WIDE_ROW_BYTES, WIDTH, WideBvh, wide_layout
+from rayaccel.bvh.wide import WIDTHS, WideBvh, count_column, ref_column, row_floats, wide_layout
 from rayaccel.counters import Counter
-from rayaccel.kernels.aabb_wide import slab_test4
+from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.aabb_wide import slab_test4, slab_test8
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 
 INF32 = np.float32(np.inf)
 ZERO32 = np.float32(0.0)
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
-#: Stack entries: each wide row pushes at most three, and a path crosses at most MAX_DEPTH rows.
-WIDE_STACK_SIZE = (WIDTH - 1) * MAX_DEPTH + 1
 
 
 @dataclass(frozen=True, slots=True)
 class WideOptions:
-    """Options of the ``bvh2.wide`` traversal (none yet; kept for a uniform API)."""
+    """Options of the ``bvh2.wide`` traversal.
+
+    Attributes
+    ----------
+    width : {4, 8}
+        Children per wide row: 4 (SSE-sized vectors, 128-byte rows) or 8 (AVX-sized,
+        256-byte rows, half the steps again).
+    """
+
+    width: int = 4
+
+    def __post_init__(self) -> None:
+        if self.width not in WIDTHS:
+            raise InvalidInputError(f"width: expected one of {WIDTHS}, got {self.width}")
 
 
 @functools.cache
-def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
-    """Return the compiled wide traversal for one (query, with_stats, parallel) variant."""
+def trace_kernel(query: int, with_stats: bool, parallel: bool, width: int = 4) -> Any:
+    """Return the compiled wide traversal for one (query, with_stats, parallel, width)."""
+    ref_col = ref_column(width)
+    count_col = count_column(width)
+    row_bytes = 4 * row_floats(width)
+    # Stack entries: a row pushes at most width - 1, a path crosses at most MAX_DEPTH rows.
+    stack_size = (width - 1) * MAX_DEPTH + 1
 
     @cpu_kernel(parallel=parallel)
     def kernel(bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters):
@@ -76,16 +94,16 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         Returns the number of rays whose stack would have overflowed (0 for trees within
         ``MAX_DEPTH``).
         """
-        _ = (query, with_stats, parallel)
+        _ = (query, with_stats, parallel, width)
         overflow = 0
         n_rays = origin.shape[0]
         n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
         box = bvh.box
         refs = bvh.ref
         for chunk in prange(n_chunks):
-            stack_ref = np.empty(WIDE_STACK_SIZE, dtype=np.int32)
-            stack_t = np.empty(WIDE_STACK_SIZE, dtype=np.float32)
-            lane_t = np.empty(WIDTH, dtype=np.float32)
+            stack_ref = np.empty(stack_size, dtype=np.int32)
+            stack_t = np.empty(stack_size, dtype=np.float32)
+            lane_t = np.empty(width, dtype=np.float32)
             for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
                 n_steps = 0
                 n_nodes = 0
@@ -104,12 +122,12 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                     box_lo = t_lo - pad
                     box_hi = t_hit + pad
                     # Near/far plane columns of each axis in the structure-of-arrays row.
-                    near_x = 4 * nx
-                    far_x = 4 - near_x
-                    near_y = 8 + 4 * (ny - 2)
-                    far_y = 20 - near_y
-                    near_z = 16 + 4 * (nz - 4)
-                    far_z = 36 - near_z
+                    near_x = width * nx
+                    far_x = width - near_x
+                    near_y = width * (ny - 2) + 2 * width
+                    far_y = 5 * width - near_y
+                    near_z = width * (nz - 4) + 4 * width
+                    far_z = 9 * width - near_z
                     sp = 0
                     entry = box_entry(
                         bvh.root_box.reshape((1, 6)), 0, 0, ox, oy, oz, ix, iy, iz,
@@ -124,19 +142,25 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                             n_steps += 1
                             n_nodes += 1
                         if node >= 0:
-                            # Four slab tests in one 4-lane vector pass (aabb_wide.py).
-                            mask = slab_test4(
-                                box, node, near_x, far_x, near_y, far_y, near_z, far_z,
-                                ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
-                            )  # fmt: skip
+                            # All child boxes in one vector slab test (aabb_wide.py).
+                            if width == 8:
+                                mask = slab_test8(
+                                    box, node, near_x, far_x, near_y, far_y, near_z, far_z,
+                                    ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
+                                )  # fmt: skip
+                            else:
+                                mask = slab_test4(
+                                    box, node, near_x, far_x, near_y, far_y, near_z, far_z,
+                                    ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
+                                )  # fmt: skip
                             if with_stats:
-                                n_box += refs[node, COUNT_COLUMN]
-                                n_bytes += WIDE_ROW_BYTES
+                                n_box += refs[node, count_col]
+                                n_bytes += row_bytes
                             if mask != 0:
                                 # The first hit lane; with one hit (the common case) go there.
                                 j = trailing_zeros(mask)
                                 mask &= mask - 1
-                                next_node = refs[node, REF_COLUMN + j]
+                                next_node = refs[node, ref_col + j]
                                 next_t = lane_t[j]
                                 n_hit = 1
                                 # More hits: keep the nearest as the next node and insert the
@@ -145,7 +169,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                 while mask != 0:
                                     j = trailing_zeros(mask)
                                     mask &= mask - 1
-                                    child = refs[node, REF_COLUMN + j]
+                                    child = refs[node, ref_col + j]
                                     tj = lane_t[j]
                                     if tj < next_t:
                                         child, next_node = next_node, child
@@ -167,7 +191,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                     n_hit += 1
                                 if next_node >= 0:
                                     prefetch_row(box, next_node)
-                                if sp > WIDE_STACK_SIZE - WIDTH:
+                                if sp > stack_size - width:
                                     overflow += 1
                                     break
                                 if with_stats and n_hit > 1:
@@ -219,13 +243,16 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
     return kernel
 
 
-def wide_bvh(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) -> WideBvh:
-    """Return the 4-wide layout of ``bvh``, memoised in ``cache`` when given."""
-    if cache is not None and "bvh2.wide" in cache:
-        return cache["bvh2.wide"]  # type: ignore[no-any-return]
-    wide = wide_layout(packed_layout(bvh, mesh, cache))
+def wide_bvh(
+    bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None, width: int = 4
+) -> WideBvh:
+    """Return the ``width``-wide layout of ``bvh``, memoised in ``cache`` when given."""
+    name = f"bvh2.wide{width}"
+    if cache is not None and name in cache:
+        return cache[name]  # type: ignore[no-any-return]
+    wide = wide_layout(packed_layout(bvh, mesh, cache), width)
     if cache is not None:
-        cache["bvh2.wide"] = wide
+        cache[name] = wide
     return wide
 
 
@@ -233,7 +260,7 @@ def wide_bvh(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) -> Wid
     "traversal",
     "bvh2.wide",
     options=WideOptions,
-    summary="ordered stack traversal of the 4-wide collapsed tree, four boxes per step",
+    summary="ordered stack traversal of the 4- or 8-wide collapsed tree, vector box tests",
     reference="Wald, Benthin, Boulos 2008, Getting Rid of Packets; Dammertz, Hanika, Keller "
     "2008, Shallow Bounding Volume Hierarchies",
 )
@@ -247,11 +274,12 @@ def trace_bvh2_wide(
     options: WideOptions | None = None,
     cache: dict[str, Any] | None = None,
 ) -> HitBatch:
-    """Trace rays through the 4-wide form of a binary BVH (see the module docstring).
+    """Trace rays through the wide form of a binary BVH (see the module docstring).
 
     Parameters and results as :func:`rayaccel.bvh.traverse_stack.trace_bvh2_stack`; the
-    derived wide rows are cached under ``"bvh2.wide"``.
+    derived wide rows are cached under ``"bvh2.wide4"`` or ``"bvh2.wide8"``.
     """
-    _ = options
-    wide = wide_bvh(bvh, mesh, cache)
-    return run_trace(trace_kernel, wide.arrays(), rays, query, stats)
+    width = (options or WideOptions()).width
+    wide = wide_bvh(bvh, mesh, cache, width)
+    kernel_for = functools.partial(trace_kernel, width=width)
+    return run_trace(kernel_for, wide.arrays(), rays, query, stats)

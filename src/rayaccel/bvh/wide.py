@@ -1,26 +1,27 @@
-"""The 4-wide layout of a binary BVH: each row holds up to four child boxes side by side.
+"""The wide layout of a binary BVH: each row holds up to 4 (or 8) child boxes side by side.
 
 Wald, Benthin, Boulos 2008, "Getting Rid of Packets — Efficient SIMD Single-Ray
 Traversal using Multi-branching BVHs" (IEEE RT 2008) and Dammertz, Hanika, Keller
 2008, "Shallow Bounding Volume Hierarchies for Fast SIMD Ray Tracing of Incoherent
 Rays" (EGSR 2008): a 4-ary BVH lets one node visit test four boxes with one SIMD
 instruction per slab and halves the number of traversal steps, at the price of
-testing some boxes a binary traversal would have skipped.
+testing some boxes a binary traversal would have skipped; an 8-ary one (the width of
+an AVX register, Embree's BVH8) halves them again.
 
 Derivation from the canonical binary tree (Wald et al. 2008 §3.1): a wide node starts
 from a binary inner node's two children and repeatedly replaces the inner child with
-the largest surface area by its two children until it has four children or only
+the largest surface area by its two children until it has ``width`` children or only
 leaves remain. Leaves are the binary tree's leaves, unchanged, so the leaf tables and
 the triangle rows of :class:`~rayaccel.bvh.layout.PackedBvh2` are shared. Rows are
 numbered breadth-first with the children of a row adjacent.
 
-Row layout (:data:`WIDE_ROW_FLOATS` float32 = 128 bytes, two cache lines): columns
-``0–3`` are the four children's ``lo.x``, ``4–7`` ``hi.x``, ``8–11`` ``lo.y``, ``12–15``
-``hi.y``, ``16–19`` ``lo.z``, ``20–23`` ``hi.z`` (structure of arrays, so a ray reads
-its near planes of one axis as four adjacent floats), ``24–27`` the child references
-as int32 (``>= 0`` a wide row, ``< 0`` ``~leaf`` as in the packed layout), ``28`` the
-number of children, ``29–31`` padding. An unused lane holds the empty box
-``lo = +inf, hi = -inf``, which every ray misses, so the box test needs no lane mask.
+Row layout for width ``W`` (``8·W`` float32: 128 bytes for W = 4, 256 for W = 8): columns
+``0:W`` are the children's ``lo.x``, ``W:2W`` ``hi.x``, then ``lo.y``, ``hi.y``, ``lo.z``,
+``hi.z`` (structure of arrays, so a ray reads the near planes of one axis as W adjacent
+floats), ``6W:7W`` the child references as int32 (``>= 0`` a wide row, ``< 0``
+``~leaf`` as in the packed layout), ``7W`` the number of children, then padding. An
+unused lane holds the empty box ``lo = +inf, hi = -inf``, which every ray misses, so the
+box test needs no lane mask.
 """
 
 from __future__ import annotations
@@ -33,21 +34,32 @@ import numpy as np
 from rayaccel._jit import cpu_kernel
 from rayaccel.bvh.layout import CACHE_LINE, PackedBvh2, aligned_zeros
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+from rayaccel.errors import InvalidInputError
 
-#: Children per wide node.
-WIDTH = 4
-#: float32 columns per wide row (see the module docstring).
-WIDE_ROW_FLOATS = 32
-WIDE_ROW_BYTES = 4 * WIDE_ROW_FLOATS
-#: Column of the first child reference and of the child count.
-REF_COLUMN = 24
-COUNT_COLUMN = 28
+#: Children per wide node that the layout and the traversal support.
+WIDTHS = (4, 8)
+MAX_WIDTH = 8
+
+
+def row_floats(width: int) -> int:
+    """float32 columns per wide row."""
+    return 8 * width
+
+
+def ref_column(width: int) -> int:
+    """Column of the first child reference."""
+    return 6 * width
+
+
+def count_column(width: int) -> int:
+    """Column of the child count."""
+    return 7 * width
 
 
 class WideArrays(NamedTuple):
     """The wide layout as one kernel argument (leaves and triangles: the packed layout's)."""
 
-    box: FloatArray  # (n_rows, 32) float32
+    box: FloatArray  # (n_rows, 8 * width) float32
     ref: IntArray  # int32 view of ``box``
     leaf_first: IntArray
     leaf_count: IntArray
@@ -59,11 +71,12 @@ class WideArrays(NamedTuple):
 
 @dataclass(frozen=True, slots=True, eq=False)
 class WideBvh:
-    """4-wide rows derived from a :class:`PackedBvh2` (see the module docstring)."""
+    """Wide rows derived from a :class:`PackedBvh2` (see the module docstring)."""
 
-    rows: np.ndarray  # (n_rows, 32) float32 buffer
+    rows: np.ndarray  # (n_rows, 8 * width) float32 buffer
     packed: PackedBvh2
     root_ref: IntArray
+    width: int
 
     @property
     def n_rows(self) -> int:
@@ -90,14 +103,14 @@ class WideBvh:
 
 
 @cpu_kernel()
-def _collapse_kernel(bin_box, bin_ref, root, rows):
+def _collapse_kernel(bin_box, bin_ref, root, rows, width):
     """Fill ``rows`` with the wide nodes over the packed binary rows; return how many."""
     ints = rows.view(np.int32)
     n_rows = 1
     queue = np.empty(rows.shape[0], dtype=np.int32)
     queue[0] = root
-    cand_box = np.empty((WIDTH, 6), dtype=np.float32)
-    cand_ref = np.empty(WIDTH, dtype=np.int32)
+    cand_box = np.empty((MAX_WIDTH, 6), dtype=np.float32)
+    cand_ref = np.empty(MAX_WIDTH, dtype=np.int32)
     for w in range(rows.shape[0]):
         if w >= n_rows:
             break
@@ -108,8 +121,8 @@ def _collapse_kernel(bin_box, bin_ref, root, rows):
                 cand_box[c, k] = bin_box[b, 6 * c + k]
             cand_ref[c] = bin_ref[b, 12 + c]
         count = 2
-        # Open the inner child with the largest surface area until four children.
-        while count < WIDTH:
+        # Open the inner child with the largest surface area until ``width`` children.
+        while count < width:
             best = -1
             best_area = np.float32(-1.0)
             for c in range(count):
@@ -131,40 +144,42 @@ def _collapse_kernel(bin_box, bin_ref, root, rows):
             cand_ref[count] = bin_ref[opened, 13]
             count += 1
         # Write the row (structure of arrays; empty lanes get the box every ray misses).
-        for c in range(WIDTH):
+        for c in range(width):
             for a in range(3):
                 if c < count:
-                    rows[w, 8 * a + c] = cand_box[c, 2 * a]
-                    rows[w, 8 * a + 4 + c] = cand_box[c, 2 * a + 1]
+                    rows[w, 2 * a * width + c] = cand_box[c, 2 * a]
+                    rows[w, (2 * a + 1) * width + c] = cand_box[c, 2 * a + 1]
                 else:
-                    rows[w, 8 * a + c] = np.inf
-                    rows[w, 8 * a + 4 + c] = -np.inf
+                    rows[w, 2 * a * width + c] = np.inf
+                    rows[w, (2 * a + 1) * width + c] = -np.inf
             if c < count:
                 ref = cand_ref[c]
                 if ref >= 0:
                     queue[n_rows] = ref
                     ref = n_rows
                     n_rows += 1
-                ints[w, REF_COLUMN + c] = ref
+                ints[w, 6 * width + c] = ref
             else:
-                ints[w, REF_COLUMN + c] = -2147483648
-        ints[w, COUNT_COLUMN] = count
-        ints[w, COUNT_COLUMN + 1] = 0
-        ints[w, COUNT_COLUMN + 2] = 0
-        ints[w, COUNT_COLUMN + 3] = 0
+                ints[w, 6 * width + c] = -2147483648
+        ints[w, 7 * width] = count
+        for k in range(7 * width + 1, 8 * width):
+            ints[w, k] = 0
     return n_rows
 
 
-def wide_layout(packed: PackedBvh2) -> WideBvh:
-    """Derive the 4-wide rows from the packed binary layout (see the module docstring)."""
+def wide_layout(packed: PackedBvh2, width: int = 4) -> WideBvh:
+    """Derive the ``width``-wide rows (4 or 8) from the packed binary layout."""
+    if width not in WIDTHS:
+        raise InvalidInputError(f"width: expected one of {WIDTHS}, got {width}")
     root = int(packed.root_ref[0])
     n_inner = packed.rows.shape[0]
+    floats = row_floats(width)
     if root < 0:
         # A single leaf: no inner rows; the traversal starts at the leaf.
-        rows = aligned_zeros((1, WIDE_ROW_FLOATS), REAL, CACHE_LINE)
-        return WideBvh(rows, packed, np.array([root], dtype=INDEX))
-    rows = aligned_zeros((n_inner, WIDE_ROW_FLOATS), REAL, CACHE_LINE)
-    n_rows = _collapse_kernel(packed.rows, packed.rows.view(np.int32), root, rows)
-    trimmed = aligned_zeros((n_rows, WIDE_ROW_FLOATS), REAL, CACHE_LINE)
+        rows = aligned_zeros((1, floats), REAL, CACHE_LINE)
+        return WideBvh(rows, packed, np.array([root], dtype=INDEX), width)
+    rows = aligned_zeros((n_inner, floats), REAL, CACHE_LINE)
+    n_rows = _collapse_kernel(packed.rows, packed.rows.view(np.int32), root, rows, width)
+    trimmed = aligned_zeros((n_rows, floats), REAL, CACHE_LINE)
     trimmed[:] = rows[:n_rows]
-    return WideBvh(trimmed, packed, np.array([0], dtype=INDEX))
+    return WideBvh(trimmed, packed, np.array([0], dtype=INDEX), width)

@@ -1,17 +1,25 @@
-"""Four ray/box slab tests at once, as explicit 4-lane LLVM vector code.
+"""Four or eight ray/box slab tests at once, as explicit LLVM vector code.
 
 The robust slab test of :mod:`rayaccel.kernels.aabb` (Williams et al. 2005 plane
 selection, Ize 2013 2-ulp exit widening, NaN never tightening a bound) applied to the
-four child boxes of a wide BVH row (:mod:`rayaccel.bvh.wide`), whose planes are
-stored structure-of-arrays: four ``lo.x`` in a row, then four ``hi.x``, and so on.
-Each slab is one ``<4 x float>`` load, subtract and multiply; the bounds are merged
-with ordered compares and selects, which is exactly the scalar test's
+child boxes of a wide BVH row (:mod:`rayaccel.bvh.wide`), whose planes are stored
+structure-of-arrays: the children's ``lo.x`` side by side, then their ``hi.x``, and
+so on. Each slab is one ``<N x float>`` load, subtract and multiply; the bounds are
+merged with ordered compares and selects, which is exactly the scalar test's
 ``if t > entry: entry = t`` per lane.
 
 numba leaves LLVM's SLP vectorizer off by default, and the loop vectorizer does not
-touch a 4-iteration loop, so a plain lane loop compiles to scalar code; this
-intrinsic writes the vector IR itself. It compiles for the CPU only (the CUDA
-traversals have their own box test).
+touch a 4-iteration loop, so a plain lane loop compiles to scalar code; the
+intrinsics :data:`slab_test4` and :data:`slab_test8` write the vector IR themselves.
+They compile for the CPU only (the CUDA traversals have their own box test).
+
+Signature (both): ``slab_testN(box, row, near_x, far_x, near_y, far_y, near_z, far_z,
+ox, oy, oz, ix, iy, iz, t_lo, t_hi, out) -> int32``. ``box`` is a 2D float32 array;
+the N lanes of each plane start at the given columns of row ``row`` (the caller picks
+near and far planes by the signs of ``ix, iy, iz``). Lane ``i`` of ``out`` gets
+``max(t_lo, entry)`` when box ``i`` is hit within ``[t_lo, t_hi]`` and ``inf``
+otherwise, exactly as :func:`rayaccel.kernels.aabb.ray_box_entry_py` (the tests check
+it lane by lane); bit ``i`` of the result is set for a hit.
 """
 
 from __future__ import annotations
@@ -25,64 +33,27 @@ from numba.extending import intrinsic
 
 from rayaccel.kernels.aabb import TWO_ULP
 
-LANES = 4
 
-
-@intrinsic
-def slab_test4(
-    typingctx: Any,
-    box: Any,
-    row: Any,
-    near_x: Any,
-    far_x: Any,
-    near_y: Any,
-    far_y: Any,
-    near_z: Any,
-    far_z: Any,
-    ox: Any,
-    oy: Any,
-    oz: Any,
-    ix: Any,
-    iy: Any,
-    iz: Any,
-    t_lo: Any,
-    t_hi: Any,
-    out: Any,
-) -> Any:
-    """Test four boxes of row ``row`` of ``box``; return the hit lanes as a 4-bit mask.
-
-    The entry distances go to ``out[0:4]``.
-
-    ``box`` is a 2D float32 array; the four lanes of each plane start at the columns
-    ``near_x`` ... ``far_z`` (the caller picks near and far planes by the signs of
-    ``ix, iy, iz``). A lane gets ``max(t_lo, entry)`` when the box is hit within
-    ``[t_lo, t_hi]`` and ``inf`` otherwise, exactly as
-    :func:`rayaccel.kernels.aabb.ray_box_entry_py` (up to the rounding of the 2-ulp
-    widening, which may differ by an FMA contraction).
-    """
-    f32 = types.float32
-    sig = types.int32(
-        box, row, near_x, far_x, near_y, far_y, near_z, far_z,
-        f32, f32, f32, f32, f32, f32, f32, f32, out,
-    )  # fmt: skip
+def _slab_codegen(lanes: int) -> Any:
+    """Return the LLVM code generator of the ``lanes``-wide slab test."""
 
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
         box_type = signature.args[0]
         out_type = signature.args[16]
         float_type = ir.FloatType()
-        vec_type = ir.VectorType(float_type, LANES)
+        vec_type = ir.VectorType(float_type, lanes)
         box_view = context.make_array(box_type)(context, builder, args[0])
         out_view = context.make_array(out_type)(context, builder, args[16])
         row_index = context.cast(builder, args[1], signature.args[1], types.intp)
 
-        def scalar(i: int) -> Any:
-            return context.cast(builder, args[i], signature.args[i], f32)
-
         def splat(value: Any) -> Any:
             vec = ir.Constant(vec_type, ir.Undefined)
-            for lane in range(LANES):
+            for lane in range(lanes):
                 vec = builder.insert_element(vec, value, ir.Constant(ir.IntType(32), lane))
             return vec
+
+        def scalar(i: int) -> Any:
+            return splat(context.cast(builder, args[i], signature.args[i], types.float32))
 
         def plane(i: int) -> Any:
             column = context.cast(builder, args[i], signature.args[i], types.intp)
@@ -96,33 +67,59 @@ def slab_test4(
             keep = builder.fcmp_ordered(cond, candidate, current)
             return builder.select(keep, candidate, current)
 
-        origin = [splat(scalar(8)), splat(scalar(9)), splat(scalar(10))]
-        inverse = [splat(scalar(11)), splat(scalar(12)), splat(scalar(13))]
-        enter = splat(scalar(14))
-        t_hi_vec = splat(scalar(15))
-        leave = splat(ir.Constant(float_type, float("inf")))
+        inf = splat(ir.Constant(float_type, float("inf")))
+        enter = scalar(14)
+        leave = inf
         # Per axis: distances to the near and far planes; entry = max, exit = min.
         for axis in range(3):
-            near = builder.fmul(builder.fsub(plane(2 + 2 * axis), origin[axis]), inverse[axis])
-            far = builder.fmul(builder.fsub(plane(3 + 2 * axis), origin[axis]), inverse[axis])
+            origin = scalar(8 + axis)
+            inverse = scalar(11 + axis)
+            near = builder.fmul(builder.fsub(plane(2 + 2 * axis), origin), inverse)
+            far = builder.fmul(builder.fsub(plane(3 + 2 * axis), origin), inverse)
             enter = take_if(">", near, enter)
             leave = take_if("<", far, leave)
         # Widen the exit by 2 ulp (Ize 2013), clamp to the interval, keep hit lanes.
         fabs = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(vec_type, [vec_type]), "llvm.fabs.v4f32"
+            builder.module, ir.FunctionType(vec_type, [vec_type]), f"llvm.fabs.v{lanes}f32"
         )
         widening = splat(ir.Constant(float_type, float(TWO_ULP)))
         leave = builder.fadd(leave, builder.fmul(builder.call(fabs, [leave]), widening))
-        leave = take_if("<", t_hi_vec, leave)
+        leave = take_if("<", scalar(15), leave)
         hit = builder.fcmp_ordered("<=", enter, leave)
-        result = builder.select(hit, enter, splat(ir.Constant(float_type, float("inf"))))
         zero = context.get_constant(types.intp, 0)
         out_pointer = cgutils.get_item_pointer(
             context, builder, out_type, out_view, [zero], wraparound=False
         )
+        result = builder.select(hit, enter, inf)
         builder.store(result, builder.bitcast(out_pointer, vec_type.as_pointer()), align=4)
         # Lane i of the mask is bit i (one movmskps).
-        mask = builder.bitcast(hit, ir.IntType(LANES))
-        return builder.zext(mask, ir.IntType(32))
+        return builder.zext(builder.bitcast(hit, ir.IntType(lanes)), ir.IntType(32))
 
-    return sig, codegen
+    return codegen
+
+
+def _signature(box: Any, columns: tuple[Any, ...], out: Any) -> Any:
+    f32 = types.float32
+    return types.int32(box, *columns, *([f32] * 8), out)
+
+
+@intrinsic
+def slab_test4(
+    typingctx: Any, box: Any, row: Any, near_x: Any, far_x: Any, near_y: Any, far_y: Any,
+    near_z: Any, far_z: Any, ox: Any, oy: Any, oz: Any, ix: Any, iy: Any, iz: Any,
+    t_lo: Any, t_hi: Any, out: Any,
+) -> Any:  # fmt: skip
+    """Four slab tests in ``<4 x float>`` vectors (see the module docstring)."""
+    columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
+    return _signature(box, columns, out), _slab_codegen(4)
+
+
+@intrinsic
+def slab_test8(
+    typingctx: Any, box: Any, row: Any, near_x: Any, far_x: Any, near_y: Any, far_y: Any,
+    near_z: Any, far_z: Any, ox: Any, oy: Any, oz: Any, ix: Any, iy: Any, iz: Any,
+    t_lo: Any, t_hi: Any, out: Any,
+) -> Any:  # fmt: skip
+    """Eight slab tests in ``<8 x float>`` vectors (see the module docstring)."""
+    columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
+    return _signature(box, columns, out), _slab_codegen(8)
