@@ -167,7 +167,7 @@ def _collapse_kernel(bin_box, bin_ref, root, rows, width):
     return n_rows
 
 
-def wide_layout(packed: PackedBvh2, width: int = 4) -> WideBvh:
+def wide_layout(packed: PackedBvh2, width: int = 8) -> WideBvh:
     """Derive the ``width``-wide rows (4 or 8) from the packed binary layout."""
     if width not in WIDTHS:
         raise InvalidInputError(f"width: expected one of {WIDTHS}, got {width}")
