@@ -8,7 +8,8 @@ names the whole triangle, so the tree's leaves are tighter while traversal still
 intersects the original triangle (results stay exact). :class:`BuildRefs` is that
 hand-over: flat arrays, one row per reference, made by a ``"before"`` build step
 (``bvh2+presplit``) and taken by builders as ``refs=``. :func:`triangle_refs` gives
-the one-reference-per-triangle list builders use when no step ran.
+the one-reference-per-triangle list (what builders build over when no step ran, and a
+starting point for references made by hand).
 
 Pieces of one triangle may end up in the same leaf. Karras & Aila remove such
 duplicates after building; :func:`remove_leaf_duplicates` does it, and the canonical
