@@ -229,7 +229,7 @@ def linked_to_canonical(
     inner_cost, prim_cost : float
         SAH constants of the collapse decision.
     """
-    as_leaf, height, n_eff, n_prim = refit_collapse(
+    as_leaf, height, n_eff, n_prim, _ = refit_collapse(
         np.int32(root),
         tree.left,
         tree.right,

@@ -32,7 +32,7 @@ half_area = cpu_inline(_half_area_py)
 
 @cpu_kernel()
 def refit_collapse(root, left, right, lo, hi, count, max_leaf, c_inner, c_prim, collapse):
-    """Refit a linked tree bottom-up; return collapse decisions and subtree sizes.
+    """Refit a linked tree bottom-up; return collapse decisions, subtree sizes and costs.
 
     Parameters
     ----------
@@ -59,6 +59,9 @@ def refit_collapse(root, left, right, lo, hi, count, max_leaf, c_inner, c_prim, 
         Emitted leaves in each subtree.
     n_prim : (n,) int32
         References in each subtree.
+    cost : (n,) float64
+        SAH cost of each subtree after collapsing, in half areas (not divided by the
+        root's area).
     """
     n = left.shape[0]
     as_leaf = np.zeros(n, dtype=np.uint8)
@@ -105,7 +108,7 @@ def refit_collapse(root, left, right, lo, hi, count, max_leaf, c_inner, c_prim, 
             n_eff[node] = n_eff[a] + n_eff[b]
             height[node] = 1 + max(height[a], height[b])
             cost[node] = split_cost
-    return as_leaf, height, n_eff, n_prim
+    return as_leaf, height, n_eff, n_prim, cost
 
 
 def _refit_up_py(node, parent, left, right, lo, hi):

@@ -55,7 +55,7 @@ from rayaccel.bvh._build_common import primitive_bounds
 from rayaccel.bvh.build_lbvh import check_leaf_costs
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
-from rayaccel.bvh.refit import half_area
+from rayaccel.bvh.refit import half_area, refit_collapse
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -130,7 +130,7 @@ def _split_leaves(node_lo, node_hi, node_first, node_count, tri_lo, tri_hi, prim
     -------
     left, right, first, count : (n_out,) int32
     lo, hi : (n_out, 3) float32
-        Inner boxes are filled in later by :func:`_subtree_costs`.
+        Inner boxes are filled in later by :func:`~rayaccel.bvh.refit.refit_collapse`.
     """
     n = node_count.shape[0]
     n_out = n + offset[n]
@@ -177,55 +177,6 @@ def _split_leaves(node_lo, node_hi, node_first, node_count, tri_lo, tri_hi, prim
                 lo[node, k] = a
                 hi[node, k] = b
     return left, right, first, count, lo, hi
-
-
-@cpu_kernel()
-def _subtree_costs(root, left, right, lo, hi, count, max_leaf, c_inner, c_prim):
-    """Refit inner boxes; return every node's SAH cost (with collapsing) and references.
-
-    The cost of an inner node is ``min(C_i·A + cost(l) + cost(r), C_t·A·N)``, the
-    leaf term only when ``N <= max_leaf`` (the final collapse's rule); a leaf costs
-    ``C_t·A·N``. Areas are half areas (the SAH is a ratio). Post-order with an
-    explicit stack, so any node numbering and depth is fine.
-
-    Returns
-    -------
-    cost : (n,) float64
-    n_prim : (n,) int32
-    """
-    n = left.shape[0]
-    cost = np.zeros(n, dtype=np.float64)
-    n_prim = np.zeros(n, dtype=np.int32)
-    stack = np.empty(n + 2, dtype=np.int32)
-    expanded = np.zeros(n, dtype=np.uint8)
-    stack[0] = root
-    sp = 1
-    while sp > 0:
-        node = stack[sp - 1]
-        a = left[node]
-        if a >= 0 and not expanded[node]:
-            # First visit of an inner node: children first.
-            expanded[node] = 1
-            stack[sp] = right[node]
-            stack[sp + 1] = a
-            sp += 2
-            continue
-        sp -= 1
-        if a < 0:
-            n_prim[node] = count[node]
-            cost[node] = c_prim * half_area(lo, hi, node) * count[node]
-            continue
-        b = right[node]
-        for k in range(3):
-            lo[node, k] = min(lo[a, k], lo[b, k])
-            hi[node, k] = max(hi[a, k], hi[b, k])
-        area = half_area(lo, hi, node)
-        n_prim[node] = n_prim[a] + n_prim[b]
-        c = c_inner * area + cost[a] + cost[b]
-        if n_prim[node] <= max_leaf:
-            c = min(c, c_prim * area * n_prim[node])
-        cost[node] = c
-    return cost, n_prim
 
 
 @cpu_kernel()
@@ -518,9 +469,11 @@ def treelet(bvh: Bvh2, mesh: TriangleMesh, options: TreeletOptions | None = None
     root = np.int32(0)
     # Parallel tasks: subtrees of about 1/1024 of the references (at least _MIN_GRAIN).
     grain = np.int32(max(_MIN_GRAIN, bvh.n_refs // 1024))
-    cost, n_prim = _subtree_costs(
-        root, tree.left, tree.right, tree.lo, tree.hi, tree.count, max_leaf, c_inner, c_prim
-    )
+    # Inner boxes, subtree costs (with the collapse rule) and reference counts.
+    _, _, _, n_prim, cost = refit_collapse(
+        root, tree.left, tree.right, tree.lo, tree.hi, tree.count, max_leaf, c_inner, c_prim,
+        True,
+    )  # fmt: skip
     for r in range(opt.rounds):
         gamma = np.int32(min(opt.min_subtree << r, np.iinfo(np.int32).max))
         task_start, order = _schedule(root, tree.left, tree.right, n_prim, gamma, grain)
