@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
+from rayaccel._hugepages import empty_huge, full_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.bvh.refs import BuildRefs, check_refs, remove_leaf_duplicates
@@ -26,9 +27,9 @@ def primitive_bounds(triangles):
     The centroid is the centre of the triangle's box (what binning uses).
     """
     n = triangles.shape[0]
-    lo = np.empty((n, 3), dtype=np.float32)
-    hi = np.empty((n, 3), dtype=np.float32)
-    centroid = np.empty((n, 3), dtype=np.float32)
+    lo = empty_huge((n, 3), np.float32)
+    hi = empty_huge((n, 3), np.float32)
+    centroid = empty_huge((n, 3), np.float32)
     for i in prange(n):
         for a in range(3):
             x0 = triangles[i, 0, a]
@@ -42,6 +43,53 @@ def primitive_bounds(triangles):
     return lo, hi, centroid
 
 
+@cpu_kernel(parallel=True)
+def triangle_bounds(vertices, faces):
+    """Return ``(lo, hi)``, each ``(F, 3)`` float32: the box of every triangle of a mesh.
+
+    Reads the corners through ``faces`` (no ``(F, 3, 3)`` copy of the corners).
+    """
+    n = faces.shape[0]
+    lo = empty_huge((n, 3), np.float32)
+    hi = empty_huge((n, 3), np.float32)
+    for i in prange(n):
+        v0 = faces[i, 0]
+        v1 = faces[i, 1]
+        v2 = faces[i, 2]
+        for a in range(3):
+            x0 = vertices[v0, a]
+            x1 = vertices[v1, a]
+            x2 = vertices[v2, a]
+            lo[i, a] = min(x0, min(x1, x2))
+            hi[i, a] = max(x0, max(x1, x2))
+    return lo, hi
+
+
+@cpu_kernel(parallel=True)
+def triangle_ref_rows(vertices, faces):
+    """Return the ``(F, 8)`` float32 reference rows ``[lo, id, hi, 0]`` of a mesh's triangles.
+
+    Column 3 holds the triangle id as int32 bits; the top-down builders partition
+    these 32-byte rows in place.
+    """
+    n = faces.shape[0]
+    refs = empty_huge((n, 8), np.float32)
+    ids = refs.view(np.int32)
+    for i in prange(n):
+        v0 = faces[i, 0]
+        v1 = faces[i, 1]
+        v2 = faces[i, 2]
+        for a in range(3):
+            x0 = vertices[v0, a]
+            x1 = vertices[v1, a]
+            x2 = vertices[v2, a]
+            refs[i, a] = min(x0, min(x1, x2))
+            refs[i, 4 + a] = max(x0, max(x1, x2))
+        ids[i, 3] = i
+        refs[i, 7] = 0
+    return refs
+
+
 def reference_boxes(
     mesh: TriangleMesh, refs: BuildRefs | None, builder: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -51,7 +99,7 @@ def reference_boxes(
     else the checked pre-built ``refs`` (``+presplit``); errors name ``builder``.
     """
     if refs is None:
-        lo, hi, _ = primitive_bounds(mesh.triangles())
+        lo, hi = triangle_bounds(mesh.vertices, mesh.faces)
         return lo, hi, np.arange(mesh.n_triangles, dtype=np.int32)
     lo, hi, prim = check_refs(refs, mesh, builder)
     return lo, hi, prim
@@ -105,8 +153,8 @@ depth_forces_median = cpu_inline(depth_forces_median)
 def _compact_kernel(t_lo, t_hi, t_first, t_count, n_used_hint):
     """Renumber reachable pool nodes depth-first; return canonical arrays."""
     n_cap = t_count.shape[0]
-    new_of = np.full(n_cap, -1, dtype=np.int32)
-    order = np.empty(n_used_hint, dtype=np.int32)
+    new_of = full_huge(n_cap, -1, np.int32)
+    order = empty_huge(n_used_hint, np.int32)
     # Depth-first walk; a pair of children gets consecutive new ids when its parent is numbered.
     stack = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
     stack[0] = 0
@@ -127,10 +175,10 @@ def _compact_kernel(t_lo, t_hi, t_first, t_count, n_used_hint):
             stack[sp] = left + 1
             stack[sp + 1] = left
             sp += 2
-    lo = np.empty((next_id, 3), dtype=np.float32)
-    hi = np.empty((next_id, 3), dtype=np.float32)
-    first = np.empty(next_id, dtype=np.int32)
-    count = np.empty(next_id, dtype=np.int32)
+    lo = empty_huge((next_id, 3), np.float32)
+    hi = empty_huge((next_id, 3), np.float32)
+    first = empty_huge(next_id, np.int32)
+    count = empty_huge(next_id, np.int32)
     for new in range(next_id):
         old = order[new]
         for a in range(3):

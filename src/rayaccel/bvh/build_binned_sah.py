@@ -33,10 +33,15 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import compact_to_canonical, depth_forces_median
+from rayaccel.bvh._build_common import (
+    compact_to_canonical,
+    depth_forces_median,
+    triangle_ref_rows,
+)
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.bvh.refs import BuildRefs, check_refs
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.box_grow import grow_box_row
 from rayaccel.scene.mesh import TriangleMesh
 
 MAX_BINS = 256
@@ -94,9 +99,7 @@ def _bin_prims_py(refs, begin, end, cb_lo, scale, n_bins, counts, bin_box):
             if b < 0:
                 b = 0
             counts[a, b] += 1
-            for k in range(3):
-                bin_box[a, b, k] = min(bin_box[a, b, k], refs[i, k])
-                bin_box[a, b, 3 + k] = max(bin_box[a, b, 3 + k], refs[i, 4 + k])
+            grow_box_row(bin_box, a, b, refs, i)
 
 
 bin_prims = cpu_inline(_bin_prims_py)
@@ -107,9 +110,9 @@ def _reset_bins(counts, bin_box, n_bins):
     for a in range(3):
         for b in range(n_bins):
             counts[a, b] = 0
-            for k in range(3):
+            for k in range(4):
                 bin_box[a, b, k] = np.inf
-                bin_box[a, b, 3 + k] = -np.inf
+                bin_box[a, b, 4 + k] = -np.inf
 
 
 @cpu_inline
@@ -163,9 +166,9 @@ def _best_split(
             lo0 = min(lo0, bin_box[a, b, 0])
             lo1 = min(lo1, bin_box[a, b, 1])
             lo2 = min(lo2, bin_box[a, b, 2])
-            hi0 = max(hi0, bin_box[a, b, 3])
-            hi1 = max(hi1, bin_box[a, b, 4])
-            hi2 = max(hi2, bin_box[a, b, 5])
+            hi0 = max(hi0, bin_box[a, b, 4])
+            hi1 = max(hi1, bin_box[a, b, 5])
+            hi2 = max(hi2, bin_box[a, b, 6])
             suffix[b, 0] = lo0
             suffix[b, 1] = lo1
             suffix[b, 2] = lo2
@@ -186,9 +189,9 @@ def _best_split(
             lo0 = min(lo0, bin_box[a, b, 0])
             lo1 = min(lo1, bin_box[a, b, 1])
             lo2 = min(lo2, bin_box[a, b, 2])
-            hi0 = max(hi0, bin_box[a, b, 3])
-            hi1 = max(hi1, bin_box[a, b, 4])
-            hi2 = max(hi2, bin_box[a, b, 5])
+            hi0 = max(hi0, bin_box[a, b, 4])
+            hi1 = max(hi1, bin_box[a, b, 5])
+            hi2 = max(hi2, bin_box[a, b, 6])
             n_r = count - n_left
             if n_left == 0 or n_r == 0:
                 continue
@@ -269,26 +272,11 @@ def _ref_range_bounds(refs, begin, end, out):
             out[9 + a] = max(out[9 + a], c)
 
 
-@cpu_kernel(parallel=True)
-def _make_refs(triangles):
-    """Return the ``(F, 8)`` float32 reference rows (box and id) of ``triangles (F, 3, 3)``."""
-    n = triangles.shape[0]
-    refs = np.empty((n, 8), dtype=np.float32)
-    ids = refs.view(np.int32)
-    for i in prange(n):
-        for a in range(3):
-            x0 = triangles[i, 0, a]
-            x1 = triangles[i, 1, a]
-            x2 = triangles[i, 2, a]
-            refs[i, a] = min(x0, min(x1, x2))
-            refs[i, 4 + a] = max(x0, max(x1, x2))
-        ids[i, 3] = i
-        refs[i, 7] = 0
-    return refs
-
-
 def ref_rows(refs: BuildRefs) -> np.ndarray:
-    """Return the ``(m, 8)`` float32 reference rows (as :func:`_make_refs`) of ``refs``."""
+    """Return the ``(m, 8)`` float32 reference rows of ``refs``.
+
+    Same row layout as :func:`~rayaccel.bvh._build_common.triangle_ref_rows`.
+    """
     rows = np.zeros((refs.n_refs, 8), dtype=np.float32)
     rows[:, 0:3] = refs.lo
     rows[:, 4:7] = refs.hi
@@ -333,7 +321,7 @@ def _build_subtree(
     stack_depth = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
     stack_cb = np.empty((2 * MAX_DEPTH + 4, 6), dtype=np.float32)
     counts = np.zeros((3, n_bins), dtype=np.int32)
-    bin_box = np.empty((3, n_bins, 6), dtype=np.float32)
+    bin_box = np.empty((3, n_bins, 8), dtype=np.float32)
     suffix = np.empty((n_bins, 7), dtype=np.float32)
     child_box = np.empty(12, dtype=np.float32)
     cb = np.empty(12, dtype=np.float32)
@@ -450,29 +438,25 @@ def _build_subtree(
 def _bin_parallel(refs, begin, end, cb_lo, scale, n_bins, n_chunks):
     """Bin a large range with ``n_chunks`` private bin sets, then reduce them in order."""
     counts_c = np.zeros((n_chunks, 3, n_bins), dtype=np.int32)
-    box_c = np.empty((n_chunks, 3, n_bins, 6), dtype=np.float32)
+    box_c = np.empty((n_chunks, 3, n_bins, 8), dtype=np.float32)
     size = (end - begin + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
-        for a in range(3):
-            for b in range(n_bins):
-                for k in range(3):
-                    box_c[c, a, b, k] = np.inf
-                    box_c[c, a, b, 3 + k] = -np.inf
+        _reset_bins(counts_c[c], box_c[c], n_bins)
         lo_i = begin + c * size
         hi_i = min(end, lo_i + size)
         bin_prims(refs, lo_i, hi_i, cb_lo, scale, n_bins, counts_c[c], box_c[c])
     counts = np.zeros((3, n_bins), dtype=np.int32)
-    bin_box = np.empty((3, n_bins, 6), dtype=np.float32)
+    bin_box = np.empty((3, n_bins, 8), dtype=np.float32)
     for a in range(3):
         for b in range(n_bins):
-            for k in range(3):
+            for k in range(4):
                 bin_box[a, b, k] = np.inf
-                bin_box[a, b, 3 + k] = -np.inf
+                bin_box[a, b, 4 + k] = -np.inf
             for c in range(n_chunks):
                 counts[a, b] += counts_c[c, a, b]
                 for k in range(3):
                     bin_box[a, b, k] = min(bin_box[a, b, k], box_c[c, a, b, k])
-                    bin_box[a, b, 3 + k] = max(bin_box[a, b, 3 + k], box_c[c, a, b, 3 + k])
+                    bin_box[a, b, 4 + k] = max(bin_box[a, b, 4 + k], box_c[c, a, b, 4 + k])
     return counts, bin_box
 
 
@@ -632,7 +616,7 @@ def build_binned_sah(
     """
     opt = options or BinnedSahOptions()
     if refs is None:
-        rows = _make_refs(mesh.triangles())
+        rows = triangle_ref_rows(mesh.vertices, mesh.faces)
     else:
         rows = ref_rows(check_refs(refs, mesh, "bvh2.binned_sah"))
     n = rows.shape[0]
@@ -669,7 +653,7 @@ def build_binned_sah(
             )
         else:
             counts = np.zeros((3, 0), dtype=np.int32)
-            bin_box = np.zeros((3, 0, 6), dtype=np.float32)
+            bin_box = np.zeros((3, 0, 8), dtype=np.float32)
         mid = _split_large(
             rows,
             begin,

@@ -30,9 +30,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numba import prange
 
+from rayaccel._hugepages import empty_huge
 from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import reference_boxes
@@ -76,46 +78,62 @@ class PlocOptions:
 
 
 @cpu_kernel(parallel=True)
-def _ploc_kernel(n_leaves, radius, left, right, lo, hi):
+def _ploc_kernel(n_leaves, radius, left, right, lo, hi, max_chunks):
     """Cluster leaves ``n−1 .. 2n−2`` (Morton order); fill inner nodes; return the root."""
     n = n_leaves
-    clusters = np.empty(n, dtype=np.int32)
+    clusters = empty_huge(n, np.int32)
     for i in range(n):
         clusters[i] = n - 1 + i
-    box = np.empty((n, 6), dtype=np.float32)
-    nn = np.empty(n, dtype=np.int32)
-    rank = np.empty(n + 1, dtype=np.int32)
-    keep = np.empty(n + 1, dtype=np.int32)
-    swap = np.empty(n, dtype=np.int32)
+    box = empty_huge((6, n), np.float32)
+    best_d = empty_huge(n, np.float32)
+    best_key = empty_huge(n, np.int32)
+    nn = empty_huge(n, np.int32)
+    rank = empty_huge(n + 1, np.int32)
+    keep = empty_huge(n + 1, np.int32)
+    swap = empty_huge(n, np.int32)
     c = n
     next_inner = 0
     while c > 1:
-        # Contiguous copy of the cluster boxes for the window scans.
+        # Structure-of-arrays copy of the cluster boxes for the window scans.
         for i in prange(c):
             node = clusters[i]
             for k in range(3):
-                box[i, k] = lo[node, k]
-                box[i, 3 + k] = hi[node, k]
-        # Nearest neighbour in the window by merged-box area; ties by pair indices.
-        for i in prange(c):
-            best = np.inf
-            best_j = -1
-            best_key = 1 << 30
-            for j in range(max(0, i - radius), min(c, i + radius + 1)):
-                if j == i:
-                    continue
-                ex = max(box[i, 3], box[j, 3]) - min(box[i, 0], box[j, 0])
-                ey = max(box[i, 4], box[j, 4]) - min(box[i, 1], box[j, 1])
-                ez = max(box[i, 5], box[j, 5]) - min(box[i, 2], box[j, 2])
-                d = ex * ey + ey * ez + ez * ex
-                # Ties prefer the partner i xor 1, then the nearest index: equal boxes
-                # (copies of one triangle) then merge pairwise and halve per iteration.
-                key = 0 if j == (i ^ 1) else 2 * abs(i - j) + (1 if j > i else 0)
-                if d < best or (d == best and key < best_key):
-                    best = d
-                    best_j = j
-                    best_key = key
-            nn[i] = best_j
+                box[k, i] = lo[node, k]
+                box[3 + k, i] = hi[node, k]
+            best_d[i] = np.inf
+            best_key[i] = 1 << 30
+        # Nearest neighbour in the window by merged-box area. Each pair (i, j > i) is
+        # measured once and offered to both ends; a chunk owns its clusters and also
+        # scans the r clusters before it. Candidates are ordered by (area, key), a
+        # strict order, so the result does not depend on the chunking.
+        n_chunks = min(max_chunks, max(1, c // (8 * radius)))
+        size = (c + n_chunks - 1) // n_chunks
+        for chunk in prange(n_chunks):
+            s = chunk * size
+            e = min(c, s + size)
+            for i in range(max(0, s - radius), e):
+                for j in range(i + 1, min(c, i + radius + 1)):
+                    if j < s:
+                        continue
+                    ex = max(box[3, i], box[3, j]) - min(box[0, i], box[0, j])
+                    ey = max(box[4, i], box[4, j]) - min(box[1, i], box[1, j])
+                    ez = max(box[5, i], box[5, j]) - min(box[2, i], box[2, j])
+                    d = ex * ey + ey * ez + ez * ex
+                    # Ties prefer the partner i xor 1, then the nearest index: equal boxes
+                    # (copies of one triangle) then merge pairwise and halve per iteration.
+                    partner = j == (i ^ 1)
+                    if i >= s:
+                        key = 0 if partner else 2 * (j - i) + 1
+                        if d < best_d[i] or (d == best_d[i] and key < best_key[i]):
+                            best_d[i] = d
+                            best_key[i] = key
+                            nn[i] = j
+                    if j < e:
+                        key = 0 if partner else 2 * (j - i)
+                        if d < best_d[j] or (d == best_d[j] and key < best_key[j]):
+                            best_d[j] = d
+                            best_key[j] = key
+                            nn[j] = i
         # Mutual pairs merge at the lower index; ids from an exclusive prefix sum.
         total = 0
         for i in range(c):
@@ -169,7 +187,12 @@ def build_ploc_refs(
     tree = tree._replace(prim_index=np.ascontiguousarray(prim_id[tree.prim_index]))
     root = 0
     if n > 1:
-        root = int(_ploc_kernel(n, opt.radius, tree.left, tree.right, tree.lo, tree.hi))
+        root = int(
+            _ploc_kernel(
+                n, opt.radius, tree.left, tree.right, tree.lo, tree.hi,
+                4 * numba.get_num_threads(),
+            )  # fmt: skip
+        )
     return linked_to_canonical(
         tree,
         root,

@@ -44,13 +44,12 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import depth_forces_median
+from rayaccel.bvh._build_common import depth_forces_median, triangle_ref_rows
 from rayaccel.bvh.build_binned_sah import (
     MAX_BINS,
     MIN_BINS,
     _best_split,
     _bin_scales,
-    _make_refs,
     _partition,
     _ref_range_bounds,
     _reset_bins,
@@ -228,7 +227,7 @@ def _build_sbvh_task(
     s_cap = np.empty(size, dtype=np.int32)
     s_depth = np.empty(size, dtype=np.int32)
     counts = np.zeros((3, n_bins), dtype=np.int32)
-    bin_box = np.empty((3, n_bins, 6), dtype=np.float32)
+    bin_box = np.empty((3, n_bins, 8), dtype=np.float32)
     suffix = np.empty((max(n_bins, n_sbins), 7), dtype=np.float32)
     child_box = np.empty(12, dtype=np.float32)
     box = np.empty(12, dtype=np.float32)
@@ -641,7 +640,10 @@ def build_sbvh(
     """
     opt = options or SbvhOptions()
     tri = mesh.triangles()
-    initial = _make_refs(tri) if refs is None else ref_rows(check_refs(refs, mesh, "bvh2.sbvh"))
+    if refs is None:
+        initial = triangle_ref_rows(mesh.vertices, mesh.faces)
+    else:
+        initial = ref_rows(check_refs(refs, mesh, "bvh2.sbvh"))
     n = initial.shape[0]
     capacity = n + int(opt.duplication_budget * n)
     rows = np.zeros((capacity, 8), dtype=np.float32)

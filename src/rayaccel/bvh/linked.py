@@ -31,11 +31,13 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from numba import prange
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._hugepages import empty_huge, zeros_huge
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.bvh._build_common import ceil_log2
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
-from rayaccel.bvh.refit import refit_collapse
+from rayaccel.bvh.refit import FRONTIER_SIZE, push, refit_collapse, top_frontier
 from rayaccel.bvh.refs import remove_leaf_duplicates
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 
@@ -88,18 +90,20 @@ def to_linked(bvh: Bvh2) -> tuple[LinkedTree, IntArray]:
     return tree, parent
 
 
-@cpu_kernel()
-def _emit_kernel(
-    root, left, right, lo, hi, first, count, prim_index, as_leaf, height, n_eff, n_prim
-):
-    """Emit the canonical arrays depth-first (see the module docstring)."""
-    n = left.shape[0]
-    n_out = 2 * n_eff[root] - 1
-    out_lo = np.empty((n_out, 3), dtype=np.float32)
-    out_hi = np.empty((n_out, 3), dtype=np.float32)
-    out_first = np.empty(n_out, dtype=np.int32)
-    out_count = np.empty(n_out, dtype=np.int32)
-    out_prim = np.empty(n_prim[root], dtype=np.int32)
+def _emit_walk_py(
+    start, start_slot, start_depth, next_id, next_ref, stop, is_frontier,
+    left, right, lo, hi, first, count, prim_index, as_leaf, height, n_eff, n_prim,
+    out_lo, out_hi, out_first, out_count, out_prim,
+    task_node, task_slot, task_depth, task_id, task_ref, inner_slots,
+):  # fmt: skip
+    """Emit the subtree of ``start`` depth-first into slot ``start_slot`` and onwards.
+
+    Children pairs are numbered from ``next_id``, references copied from ``next_ref``.
+    With ``stop``, a frontier node is not descended into: it becomes a task (its
+    descendants' ids and references are reserved, as the serial walk would number
+    them) and every inner slot written is listed in ``inner_slots``. Returns
+    ``(next_id, next_ref, n_tasks, n_inner_slots)``.
+    """
     size = 2 * MAX_DEPTH + 8
     s_node = np.empty(size, dtype=np.int32)
     s_slot = np.empty(size, dtype=np.int32)
@@ -107,14 +111,14 @@ def _emit_kernel(
     s_a = np.empty(size, dtype=np.int32)
     s_b = np.empty(size, dtype=np.int32)
     # Scratch for walking (possibly very deep) subtrees and for rebalanced leaf lists.
-    g_stack = np.empty(n + 2, dtype=np.int32)
-    gather = np.empty(n_eff[root], dtype=np.int32)
-    s_node[0] = root
-    s_slot[0] = 0
-    s_depth[0] = 0
+    g_stack = np.empty(2 * MAX_DEPTH + 64, dtype=np.int32)
+    gather = np.empty(n_eff[start], dtype=np.int32)
+    n_tasks = 0
+    n_inner = 0
+    s_node[0] = start
+    s_slot[0] = start_slot
+    s_depth[0] = start_depth
     sp = 1
-    next_id = 1
-    next_ref = 0
     while sp > 0:
         sp -= 1
         node = s_node[sp]
@@ -128,6 +132,9 @@ def _emit_kernel(
                 mid = (a + b) // 2
                 out_first[slot] = next_id
                 out_count[slot] = 0
+                if stop:
+                    inner_slots[n_inner] = slot
+                    n_inner += 1
                 for c in range(2):
                     s_node[sp] = -1
                     s_slot[sp] = next_id + 1 - c
@@ -155,9 +162,20 @@ def _emit_kernel(
                         out_prim[next_ref] = prim_index[r]
                         next_ref += 1
                 else:
-                    g_stack[gp] = right[x]
-                    g_stack[gp + 1] = left[x]
+                    g_stack = push(g_stack, gp, right[x])
+                    g_stack = push(g_stack, gp + 1, left[x])
                     gp += 2
+            continue
+        if stop and is_frontier[node]:
+            # Another thread emits this subtree into the ids and references reserved here.
+            task_node[n_tasks] = node
+            task_slot[n_tasks] = slot
+            task_depth[n_tasks] = depth
+            task_id[n_tasks] = next_id
+            task_ref[n_tasks] = next_ref
+            n_tasks += 1
+            next_id += 2 * n_eff[node] - 2
+            next_ref += n_prim[node]
             continue
         if depth + height[node] > MAX_DEPTH and depth + ceil_log2(n_eff[node]) >= MAX_DEPTH - 1:
             # Too deep: collect the subtree's leaves in order, re-emit them balanced.
@@ -171,8 +189,8 @@ def _emit_kernel(
                     gather[m] = x
                     m += 1
                 else:
-                    g_stack[gp] = right[x]
-                    g_stack[gp + 1] = left[x]
+                    g_stack = push(g_stack, gp, right[x])
+                    g_stack = push(g_stack, gp + 1, left[x])
                     gp += 2
             s_node[sp] = -1
             s_slot[sp] = slot
@@ -184,6 +202,9 @@ def _emit_kernel(
         # Inner node: allocate the sibling pair, push right then left (left emitted first).
         out_first[slot] = next_id
         out_count[slot] = 0
+        if stop:
+            inner_slots[n_inner] = slot
+            n_inner += 1
         s_node[sp] = right[node]
         s_slot[sp] = next_id + 1
         s_depth[sp] = depth + 1
@@ -192,13 +213,75 @@ def _emit_kernel(
         s_depth[sp + 1] = depth + 1
         sp += 2
         next_id += 2
-    # Inner boxes from their children (children always follow their parent).
-    for i in range(next_id - 1, -1, -1):
-        if out_count[i] == 0:
-            c = out_first[i]
-            for k in range(3):
-                out_lo[i, k] = min(out_lo[c, k], out_lo[c + 1, k])
-                out_hi[i, k] = max(out_hi[c, k], out_hi[c + 1, k])
+    return next_id, next_ref, n_tasks, n_inner
+
+
+_emit_walk = cpu_inline(_emit_walk_py)
+
+
+def _inner_box_py(out_lo, out_hi, out_first, out_count, i):
+    """Set inner slot ``i``'s box to the union of its children's (no-op for a leaf)."""
+    if out_count[i] == 0:
+        c = out_first[i]
+        for k in range(3):
+            out_lo[i, k] = min(out_lo[c, k], out_lo[c + 1, k])
+            out_hi[i, k] = max(out_hi[c, k], out_hi[c + 1, k])
+
+
+_inner_box = cpu_inline(_inner_box_py)
+
+
+@cpu_kernel(parallel=True)
+def _emit_kernel(
+    root, left, right, lo, hi, first, count, prim_index, as_leaf, height, n_eff, n_prim
+):
+    """Emit the canonical arrays depth-first (see the module docstring).
+
+    The top levels are emitted serially down to the :func:`top_frontier` subtrees,
+    whose id and reference ranges are reserved exactly where a serial walk would put
+    them; the subtrees are then emitted in parallel. The output is the serial one.
+    """
+    n = left.shape[0]
+    n_out = 2 * n_eff[root] - 1
+    out_lo = empty_huge((n_out, 3), np.float32)
+    out_hi = empty_huge((n_out, 3), np.float32)
+    out_first = empty_huge(n_out, np.int32)
+    out_count = empty_huge(n_out, np.int32)
+    out_prim = empty_huge(n_prim[root], np.int32)
+    frontier, _ = top_frontier(root, left, right, FRONTIER_SIZE)
+    is_frontier = zeros_huge(n, np.uint8)
+    for f in frontier:
+        is_frontier[f] = 1
+    m = frontier.shape[0]
+    task_node = np.empty(m, dtype=np.int32)
+    task_slot = np.empty(m, dtype=np.int32)
+    task_depth = np.empty(m, dtype=np.int32)
+    task_id = np.empty(m, dtype=np.int32)
+    task_ref = np.empty(m, dtype=np.int32)
+    inner_slots = empty_huge(n_out, np.int32)
+    # Top levels, serially; frontier subtrees become tasks.
+    _, _, n_tasks, n_inner = _emit_walk(
+        root, 0, 0, 1, 0, True, is_frontier,
+        left, right, lo, hi, first, count, prim_index, as_leaf, height, n_eff, n_prim,
+        out_lo, out_hi, out_first, out_count, out_prim,
+        task_node, task_slot, task_depth, task_id, task_ref, inner_slots,
+    )  # fmt: skip
+    # Each subtree, then its inner boxes (children always follow their parent).
+    for t in prange(n_tasks):
+        _emit_walk(
+            task_node[t], task_slot[t], task_depth[t], task_id[t], task_ref[t], False,
+            is_frontier, left, right, lo, hi, first, count, prim_index, as_leaf, height,
+            n_eff, n_prim, out_lo, out_hi, out_first, out_count, out_prim,
+            task_node, task_slot, task_depth, task_id, task_ref, inner_slots,
+        )  # fmt: skip
+        base = task_id[t]
+        for i in range(base + 2 * n_eff[task_node[t]] - 3, base - 1, -1):
+            _inner_box(out_lo, out_hi, out_first, out_count, i)
+        _inner_box(out_lo, out_hi, out_first, out_count, task_slot[t])
+    # Inner boxes of the top levels, deepest ids first.
+    top_slots = np.sort(inner_slots[:n_inner])
+    for i in range(n_inner - 1, -1, -1):
+        _inner_box(out_lo, out_hi, out_first, out_count, top_slots[i])
     return out_lo, out_hi, out_first, out_count, out_prim
 
 

@@ -22,6 +22,7 @@ from numba import prange
 from numba.core import types
 from numba.extending import intrinsic
 
+from rayaccel._hugepages import empty_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
 
 
@@ -75,7 +76,7 @@ def morton_codes(prim_lo, prim_hi, bits_per_axis):
     for a in range(3):
         if c_hi[a] > c_lo[a]:
             scale[a] = cells / (c_hi[a] - c_lo[a])
-    codes = np.empty(n, dtype=np.int64)
+    codes = empty_huge(n, np.int64)
     for i in prange(n):
         code = np.int64(0)
         for a in range(3):

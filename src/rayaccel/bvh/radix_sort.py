@@ -17,6 +17,7 @@ import numba
 import numpy as np
 from numba import prange
 
+from rayaccel._hugepages import empty_huge
 from rayaccel._jit import cpu_kernel
 
 RADIX_BITS = 8
@@ -29,10 +30,12 @@ MIN_CHUNK = 16384
 def _radix_sort_kernel(keys, values, n_bits, n_chunks):
     """Sort ``keys`` (int64) and carry ``values`` (int32) along; return both sorted."""
     n = keys.shape[0]
-    src_k = keys.copy()
-    src_v = values.copy()
-    dst_k = np.empty_like(src_k)
-    dst_v = np.empty_like(src_v)
+    src_k = empty_huge(n, np.int64)
+    src_v = empty_huge(n, np.int32)
+    src_k[:] = keys
+    src_v[:] = values
+    dst_k = empty_huge(n, np.int64)
+    dst_v = empty_huge(n, np.int32)
     size = (n + n_chunks - 1) // n_chunks
     hist = np.zeros((n_chunks, RADIX), dtype=np.int64)
     shift = 0

@@ -15,8 +15,11 @@ afterwards, and every tree optimizer refits the path above a changed node.
 from __future__ import annotations
 
 import numpy as np
+from numba import prange
 
+from rayaccel._hugepages import zeros_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel.bvh.layout import MAX_DEPTH
 
 
 def _half_area_py(lo, hi, i):
@@ -30,9 +33,110 @@ def _half_area_py(lo, hi, i):
 half_area = cpu_inline(_half_area_py)
 
 
+#: Subtrees handed to threads by the parallel passes (independent of the thread count,
+#: so results never depend on it).
+FRONTIER_SIZE = 128
+
+
 @cpu_kernel()
+def top_frontier(root, left, right, target):
+    """Cut a linked tree below its top levels into about ``target`` independent subtrees.
+
+    The tree is expanded level by level from ``root`` until the current level holds at
+    least ``target`` nodes or only leaves. Returns ``(frontier, top)``: the roots of
+    the subtrees (the last level, left to right) and the expanded inner nodes above
+    them, parents before children. A chain-like tree still works: its frontier is
+    leaves and one deep subtree.
+    """
+    level = np.empty(1, dtype=np.int32)
+    level[0] = root
+    top = np.empty(4 * target + 4, dtype=np.int32)
+    n_top = 0
+    while level.shape[0] < target:
+        n_inner = 0
+        for x in level:
+            if left[x] >= 0:
+                n_inner += 1
+        if n_inner == 0:
+            break
+        nxt = np.empty(level.shape[0] + n_inner, dtype=np.int32)
+        m = 0
+        for x in level:
+            if left[x] >= 0:
+                if n_top == top.shape[0]:
+                    grown = np.empty(2 * top.shape[0], dtype=np.int32)
+                    grown[:n_top] = top[:n_top]
+                    top = grown
+                top[n_top] = x
+                n_top += 1
+                nxt[m] = left[x]
+                nxt[m + 1] = right[x]
+                m += 2
+            else:
+                nxt[m] = x
+                m += 1
+        level = nxt
+    return level, top[:n_top].copy()
+
+
+def _push_py(stack, sp, value):
+    """Push ``value`` on a growable int32 stack; return the (possibly new) stack."""
+    if sp == stack.shape[0]:
+        grown = np.empty(2 * stack.shape[0], dtype=np.int32)
+        grown[:sp] = stack[:sp]
+        stack = grown
+    stack[sp] = value
+    return stack
+
+
+push = cpu_inline(_push_py)
+
+
+def _collapse_node_py(
+    node, left, right, lo, hi, count, max_leaf, c_inner, c_prim, collapse,
+    as_leaf, height, n_eff, n_prim, cost,
+):  # fmt: skip
+    """Finish one node whose children are done: refit, cost, collapse decision."""
+    a = left[node]
+    if a < 0:
+        # An original leaf.
+        as_leaf[node] = 1
+        n_eff[node] = 1
+        n_prim[node] = count[node]
+        cost[node] = c_prim * half_area(lo, hi, node) * count[node]
+        return
+    b = right[node]
+    # Refit the box, then compare the split cost with a leaf's.
+    for k in range(3):
+        lo[node, k] = min(lo[a, k], lo[b, k])
+        hi[node, k] = max(hi[a, k], hi[b, k])
+    area = half_area(lo, hi, node)
+    n_prim[node] = n_prim[a] + n_prim[b]
+    split_cost = c_inner * area + cost[a] + cost[b]
+    leaf_cost = c_prim * area * n_prim[node]
+    if collapse and n_prim[node] <= max_leaf and leaf_cost <= split_cost:
+        as_leaf[node] = 1
+        n_eff[node] = 1
+        height[node] = 0
+        cost[node] = leaf_cost
+    else:
+        as_leaf[node] = 0
+        n_eff[node] = n_eff[a] + n_eff[b]
+        height[node] = 1 + max(height[a], height[b])
+        cost[node] = split_cost
+
+
+_collapse_node = cpu_inline(_collapse_node_py)
+
+
+@cpu_kernel(parallel=True)
 def refit_collapse(root, left, right, lo, hi, count, max_leaf, c_inner, c_prim, collapse):
     """Refit a linked tree bottom-up; return collapse decisions, subtree sizes and costs.
+
+    The subtrees below :func:`top_frontier` are processed in parallel, each with a
+    post-order walk on an explicit stack (arbitrarily deep trees are fine), then the
+    top nodes serially, children first. Every node gets the same arithmetic as in a
+    serial walk, so the result is bit-identical for any thread count.
 
     Parameters
     ----------
@@ -64,50 +168,38 @@ def refit_collapse(root, left, right, lo, hi, count, max_leaf, c_inner, c_prim, 
         root's area).
     """
     n = left.shape[0]
-    as_leaf = np.zeros(n, dtype=np.uint8)
-    height = np.zeros(n, dtype=np.int32)
-    n_eff = np.zeros(n, dtype=np.int32)
-    n_prim = np.zeros(n, dtype=np.int32)
-    cost = np.zeros(n, dtype=np.float64)
-    stack = np.empty(n + 2, dtype=np.int32)
-    expanded = np.zeros(n, dtype=np.uint8)
-    stack[0] = root
-    sp = 1
-    while sp > 0:
-        node = stack[sp - 1]
-        a = left[node]
-        if a >= 0 and not expanded[node]:
-            # First visit of an inner node: visit the children before it.
-            expanded[node] = 1
-            stack[sp] = right[node]
-            stack[sp + 1] = a
-            sp += 2
-            continue
-        sp -= 1
-        if a < 0:
-            # An original leaf.
-            as_leaf[node] = 1
-            n_eff[node] = 1
-            n_prim[node] = count[node]
-            cost[node] = c_prim * half_area(lo, hi, node) * count[node]
-            continue
-        b = right[node]
-        # Refit the box, then compare the split cost with a leaf's.
-        for k in range(3):
-            lo[node, k] = min(lo[a, k], lo[b, k])
-            hi[node, k] = max(hi[a, k], hi[b, k])
-        area = half_area(lo, hi, node)
-        n_prim[node] = n_prim[a] + n_prim[b]
-        split_cost = c_inner * area + cost[a] + cost[b]
-        leaf_cost = c_prim * area * n_prim[node]
-        if collapse and n_prim[node] <= max_leaf and leaf_cost <= split_cost:
-            as_leaf[node] = 1
-            n_eff[node] = 1
-            cost[node] = leaf_cost
-        else:
-            n_eff[node] = n_eff[a] + n_eff[b]
-            height[node] = 1 + max(height[a], height[b])
-            cost[node] = split_cost
+    as_leaf = zeros_huge(n, np.uint8)
+    height = zeros_huge(n, np.int32)
+    n_eff = zeros_huge(n, np.int32)
+    n_prim = zeros_huge(n, np.int32)
+    cost = zeros_huge(n, np.float64)
+    expanded = zeros_huge(n, np.uint8)
+    frontier, top = top_frontier(root, left, right, FRONTIER_SIZE)
+    # Frontier subtrees in parallel: post-order walks (a node is finished on its second visit).
+    for f in prange(frontier.shape[0]):
+        stack = np.empty(2 * MAX_DEPTH + 64, dtype=np.int32)
+        stack[0] = frontier[f]
+        sp = 1
+        while sp > 0:
+            node = stack[sp - 1]
+            a = left[node]
+            if a >= 0 and not expanded[node]:
+                expanded[node] = 1
+                stack = push(stack, sp, right[node])
+                stack = push(stack, sp + 1, a)
+                sp += 2
+                continue
+            sp -= 1
+            _collapse_node(
+                node, left, right, lo, hi, count, max_leaf, c_inner, c_prim, collapse,
+                as_leaf, height, n_eff, n_prim, cost,
+            )  # fmt: skip
+    # The top levels, children before parents.
+    for i in range(top.shape[0] - 1, -1, -1):
+        _collapse_node(
+            top[i], left, right, lo, hi, count, max_leaf, c_inner, c_prim, collapse,
+            as_leaf, height, n_eff, n_prim, cost,
+        )  # fmt: skip
     return as_leaf, height, n_eff, n_prim, cost
 
 

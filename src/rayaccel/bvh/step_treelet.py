@@ -51,7 +51,7 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import primitive_bounds
+from rayaccel.bvh._build_common import triangle_bounds
 from rayaccel.bvh.build_lbvh import check_leaf_costs
 from rayaccel.bvh.layout import Bvh2
 from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
@@ -426,7 +426,7 @@ def split_leaves_linked(
     if split:
         marked = (count > 1) & (count <= max_leaf_size)
         extra = np.where(marked, 2 * count - 2, 0)
-        tri_lo, tri_hi, _ = primitive_bounds(mesh.triangles())
+        tri_lo, tri_hi = triangle_bounds(mesh.vertices, mesh.faces)
     else:
         extra = np.zeros_like(count)
         tri_lo = tri_hi = np.zeros((0, 3), dtype=np.float32)
