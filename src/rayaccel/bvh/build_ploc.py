@@ -187,12 +187,8 @@ def build_ploc_refs(
     tree = tree._replace(prim_index=np.ascontiguousarray(prim_id[tree.prim_index]))
     root = 0
     if n > 1:
-        root = int(
-            _ploc_kernel(
-                n, opt.radius, tree.left, tree.right, tree.lo, tree.hi,
-                4 * numba.get_num_threads(),
-            )  # fmt: skip
-        )
+        max_chunks = 4 * numba.get_num_threads()
+        root = int(_ploc_kernel(n, opt.radius, tree.left, tree.right, tree.lo, tree.hi, max_chunks))
     return linked_to_canonical(
         tree,
         root,
