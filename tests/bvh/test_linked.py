@@ -160,7 +160,8 @@ def test_top_frontier_cuts_the_tree_into_disjoint_subtrees(shape, n_leaves):
     assert not set(top) & set(owner)
     seen = {root}
     for x in top:
-        assert tree.left[x] >= 0 and x in seen
+        assert tree.left[x] >= 0
+        assert x in seen
         seen |= {tree.left[x], tree.right[x]}
     assert set(frontier) <= seen
     if shape == "random":
@@ -177,9 +178,14 @@ def _huge_arrays(n):
 @pytest.mark.parametrize("n", [0, 5, 3_000_000])
 def test_huge_page_arrays_behave_like_numpy(n):
     a, z, f = _huge_arrays(n)
-    assert a.shape == (n,) and a.dtype == np.int32 and (a == 3).all()
-    assert z.shape == (n, 3) and z.dtype == np.float64 and not z.any()
-    assert f.dtype == np.int8 and (f == -1).all()
+    assert a.shape == (n,)
+    assert a.dtype == np.int32
+    assert (a == 3).all()
+    assert z.shape == (n, 3)
+    assert z.dtype == np.float64
+    assert not z.any()
+    assert f.dtype == np.int8
+    assert (f == -1).all()
 
 
 @cpu_kernel()
