@@ -1,0 +1,83 @@
+"""Build time of rayaccel's builders against Embree's, interleaved on the same mesh.
+
+The machine is shared and noisy, so each round builds every rayaccel key and every
+peer once, in turn, and the report is the median over rounds (after one warm-up
+round that also compiles) with each build's ratio to Open3D's Embree build in the
+same run. Open3D builds lazily; its time covers ``add_triangles`` and the committing
+first cast (:mod:`rayaccel.bench.peers`). One JSONL record per system, written
+atomically after the last round; a Markdown table is printed.
+
+    NUMBA_NUM_THREADS=2 RAYACCEL_SCENE_PATH=../shared/scenes python benchmarks/bench_build.py \
+        kitchen --keys bvh2.lbvh bvh2.binned_sah bvh2.ploc bvh2.sbvh --rounds 7
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numba
+
+import rayaccel
+from rayaccel.bench import report
+from rayaccel.bench.peers import get_peer
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scene")
+    parser.add_argument("--keys", nargs="+", default=["bvh2.binned_sah"])
+    parser.add_argument("--peers", nargs="*", default=["open3d", "embree"])
+    parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--json", default=None, help="JSONL output (default results/...)")
+    args = parser.parse_args(argv)
+    mesh = rayaccel.scenes.get(args.scene)
+    threads = numba.get_num_threads()
+    peers = {}
+    for name in args.peers:
+        peer = get_peer(name)
+        if peer.available():
+            peer.set_threads(threads)
+            peers[name] = peer
+        else:
+            print(f"{name}: {peer.unavailable_reason()}", file=sys.stderr)
+    times: dict[str, list[float]] = {key: [] for key in [*args.keys, *peers]}
+    for round_index in range(args.rounds + 1):
+        for key in args.keys:
+            times[key].append(rayaccel.build(mesh, key).build_ms)
+        for name, peer in peers.items():
+            times[name].append(peer.build(mesh))
+        print(f"round {round_index}: " + ", ".join(f"{k} {v[-1]:.0f}" for k, v in times.items()),
+              file=sys.stderr, flush=True)  # fmt: skip
+    median = {key: statistics.median(values[1:]) for key, values in times.items()}
+    reference = median.get("open3d")
+    records = []
+    for key, ms in median.items():
+        records.append({
+            "scene": args.scene, "system": key, "n_tris": mesh.n_triangles, "threads": threads,
+            "rounds": args.rounds, "build_ms": round(ms, 1),
+            "best_ms": round(min(times[key][1:]), 1),
+            "mtris_per_s": round(mesh.n_triangles / ms / 1e3, 3),
+            "x_open3d_speed": round(reference / ms, 3) if reference else None,
+        })  # fmt: skip
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    output = Path(args.json or Path(__file__).parent / "results" / f"bench_build-{stamp}.jsonl")
+    writer = report.JsonlWriter(output)
+    for record in records:
+        writer.append(record)
+    columns = ["system", "build_ms", "best_ms", "mtris_per_s", "x_open3d_speed"]
+    print(f"**{args.scene}** ({mesh.n_triangles:,} triangles, {threads} threads, "
+          f"median of {args.rounds} rounds)\n")  # fmt: skip
+    print("| " + " | ".join(columns) + " |")
+    print("|" + "---|" * len(columns))
+    for record in records:
+        print("| " + " | ".join(str(record[c]) for c in columns) + " |")
+    print(f"\n{len(records)} records in {output}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
