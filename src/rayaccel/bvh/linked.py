@@ -21,6 +21,12 @@ a range ``first:first + count`` into a reference array. Node ids carry no order.
    path where ``depth + ceil(log2(leaves)) >= MAX_DEPTH - 1``, so the balanced
    subtree always fits; ordinary trees are never touched.
 
+Passes 1 and 2 run in parallel over the subtrees below a top frontier
+(:func:`rayaccel.bvh.refit.top_frontier`); since a node's descendants take one
+contiguous block of ids and references in the depth-first numbering, the serial walk
+over the top levels reserves each subtree's block and the output is exactly the
+serial one, whatever the thread count.
+
 A tree with more references than primitives (spatial splits, pre-split input) may
 collapse two pieces of one triangle into one leaf; the copies are then dropped
 (:func:`rayaccel.bvh.refs.remove_leaf_duplicates`, Karras & Aila 2013 §5.9).

@@ -6,8 +6,9 @@ afterwards, and every tree optimizer refits the path above a changed node.
 
 - :func:`refit_collapse`: one post-order pass over a linked tree (any node order)
   that refits, computes the SAH cost of every subtree and decides SAH leaf
-  collapsing (Meister & Bittner 2018 §4.4). Cost O(n), serial; the traversal order
-  is a depth-first walk with an explicit stack, so arbitrarily deep trees are fine.
+  collapsing (Meister & Bittner 2018 §4.4). Cost O(n), parallel over the subtrees
+  below :func:`top_frontier`; each is walked depth-first with an explicit, growable
+  stack, so arbitrarily deep trees are fine.
 - :func:`refit_up`: refit the ancestors of one node through parent links, stopping
   as soon as a box no longer changes (used by the optimizers).
 """
