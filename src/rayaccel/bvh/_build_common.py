@@ -43,6 +43,15 @@ def primitive_bounds(triangles):
     return lo, hi, centroid
 
 
+@cpu_inline
+def _corner_extent(vertices, faces, i, a):
+    """Return the smallest and largest coordinate ``a`` of triangle ``i``'s corners."""
+    x0 = vertices[faces[i, 0], a]
+    x1 = vertices[faces[i, 1], a]
+    x2 = vertices[faces[i, 2], a]
+    return min(x0, min(x1, x2)), max(x0, max(x1, x2))
+
+
 @cpu_kernel(parallel=True)
 def triangle_bounds(vertices, faces):
     """Return ``(lo, hi)``, each ``(F, 3)`` float32: the box of every triangle of a mesh.
@@ -53,15 +62,8 @@ def triangle_bounds(vertices, faces):
     lo = empty_huge((n, 3), np.float32)
     hi = empty_huge((n, 3), np.float32)
     for i in prange(n):
-        v0 = faces[i, 0]
-        v1 = faces[i, 1]
-        v2 = faces[i, 2]
         for a in range(3):
-            x0 = vertices[v0, a]
-            x1 = vertices[v1, a]
-            x2 = vertices[v2, a]
-            lo[i, a] = min(x0, min(x1, x2))
-            hi[i, a] = max(x0, max(x1, x2))
+            lo[i, a], hi[i, a] = _corner_extent(vertices, faces, i, a)
     return lo, hi
 
 
@@ -76,15 +78,8 @@ def triangle_ref_rows(vertices, faces):
     refs = empty_huge((n, 8), np.float32)
     ids = refs.view(np.int32)
     for i in prange(n):
-        v0 = faces[i, 0]
-        v1 = faces[i, 1]
-        v2 = faces[i, 2]
         for a in range(3):
-            x0 = vertices[v0, a]
-            x1 = vertices[v1, a]
-            x2 = vertices[v2, a]
-            refs[i, a] = min(x0, min(x1, x2))
-            refs[i, 4 + a] = max(x0, max(x1, x2))
+            refs[i, a], refs[i, 4 + a] = _corner_extent(vertices, faces, i, a)
         ids[i, 3] = i
         refs[i, 7] = 0
     return refs
