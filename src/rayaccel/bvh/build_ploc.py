@@ -45,6 +45,9 @@ from rayaccel.bvh.refs import BuildRefs
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
+#: Packed candidate value larger than any real one (see the neighbour search).
+NO_CANDIDATE = np.int64(0x7FFFFFFFFFFFFFFF)
+
 
 @dataclass(frozen=True, slots=True)
 class PlocOptions:
@@ -85,8 +88,7 @@ def _ploc_kernel(n_leaves, radius, left, right, lo, hi, max_chunks):
     for i in range(n):
         clusters[i] = n - 1 + i
     box = empty_huge((6, n), np.float32)
-    best_d = empty_huge(n, np.float32)
-    best_key = empty_huge(n, np.int32)
+    best = empty_huge(n, np.int64)
     nn = empty_huge(n, np.int32)
     rank = empty_huge(n + 1, np.int32)
     keep = empty_huge(n + 1, np.int32)
@@ -100,40 +102,50 @@ def _ploc_kernel(n_leaves, radius, left, right, lo, hi, max_chunks):
             for k in range(3):
                 box[k, i] = lo[node, k]
                 box[3 + k, i] = hi[node, k]
-            best_d[i] = np.inf
-            best_key[i] = 1 << 30
-        # Nearest neighbour in the window by merged-box area. Each pair (i, j > i) is
-        # measured once and offered to both ends; a chunk owns its clusters and also
-        # scans the r clusters before it. Candidates are ordered by (area, key), a
-        # strict order, so the result does not depend on the chunking.
+            best[i] = NO_CANDIDATE
+        # Nearest neighbour in the window by merged-box area. A candidate is packed as
+        # (area bits << 32 | key): areas are >= 0, so their float bits order like the
+        # areas, and the smallest packed value is the (area, key)-smallest candidate,
+        # found branch-free. Ties prefer the partner i xor 1 (key 0), then the nearest
+        # index (key 2·|i−j|, +1 when j > i): equal boxes (copies of one triangle) merge
+        # pairwise and halve per iteration. Each pair (i, j > i) is measured once and
+        # offered to both ends; a chunk owns its clusters and also scans the r clusters
+        # before it. The order is strict, so the chunking cannot change the result.
         n_chunks = min(max_chunks, max(1, c // (8 * radius)))
         size = (c + n_chunks - 1) // n_chunks
         for chunk in prange(n_chunks):
             s = chunk * size
             e = min(c, s + size)
+            dist = np.empty(radius, dtype=np.float32)
+            dist_bits = dist.view(np.int32)
             for i in range(max(0, s - radius), e):
-                for j in range(i + 1, min(c, i + radius + 1)):
-                    if j < s:
-                        continue
+                j0 = max(i + 1, s)
+                j1 = min(c, i + radius + 1)
+                # Merged-box areas of i with its window (a branch-free, vectorizable loop).
+                for j in range(j0, j1):
                     ex = max(box[3, i], box[3, j]) - min(box[0, i], box[0, j])
                     ey = max(box[4, i], box[4, j]) - min(box[1, i], box[1, j])
                     ez = max(box[5, i], box[5, j]) - min(box[2, i], box[2, j])
-                    d = ex * ey + ey * ez + ez * ex
-                    # Ties prefer the partner i xor 1, then the nearest index: equal boxes
-                    # (copies of one triangle) then merge pairwise and halve per iteration.
+                    dist[j - j0] = ex * ey + ey * ez + ez * ex
+                own = i >= s
+                best_i = best[i] if own else NO_CANDIDATE
+                for j in range(j0, j1):
+                    area = np.int64(dist_bits[j - j0]) << 32
                     partner = j == (i ^ 1)
-                    if i >= s:
-                        key = 0 if partner else 2 * (j - i) + 1
-                        if d < best_d[i] or (d == best_d[i] and key < best_key[i]):
-                            best_d[i] = d
-                            best_key[i] = key
-                            nn[i] = j
+                    best_i = min(best_i, area | (0 if partner else 2 * (j - i) + 1))
                     if j < e:
-                        key = 0 if partner else 2 * (j - i)
-                        if d < best_d[j] or (d == best_d[j] and key < best_key[j]):
-                            best_d[j] = d
-                            best_key[j] = key
-                            nn[j] = i
+                        best[j] = min(best[j], area | (0 if partner else 2 * (j - i)))
+                if own:
+                    best[i] = best_i
+        # Decode each cluster's neighbour from the key.
+        for i in prange(c):
+            key = best[i] & 0xFFFFFFFF
+            if key == 0:
+                nn[i] = i ^ 1
+            elif key & 1:
+                nn[i] = i + (key >> 1)
+            else:
+                nn[i] = i - (key >> 1)
         # Mutual pairs merge at the lower index; ids from an exclusive prefix sum.
         total = 0
         for i in range(c):
