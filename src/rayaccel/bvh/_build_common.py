@@ -144,7 +144,7 @@ def depth_forces_median(depth, count, max_leaf_size):
 depth_forces_median = cpu_inline(depth_forces_median)
 
 
-@cpu_kernel()
+@cpu_kernel(parallel=True)
 def _compact_kernel(t_lo, t_hi, t_first, t_count, n_used_hint):
     """Renumber reachable pool nodes depth-first; return canonical arrays."""
     n_cap = t_count.shape[0]
@@ -174,7 +174,8 @@ def _compact_kernel(t_lo, t_hi, t_first, t_count, n_used_hint):
     hi = empty_huge((next_id, 3), np.float32)
     first = empty_huge(next_id, np.int32)
     count = empty_huge(next_id, np.int32)
-    for new in range(next_id):
+    # Gather the rows in the new order (independent rows: parallel).
+    for new in prange(next_id):
         old = order[new]
         for a in range(3):
             lo[new, a] = t_lo[old, a]
