@@ -45,7 +45,7 @@ from rayaccel._variant import register
 from rayaccel.bvh._build_common import reference_boxes
 from rayaccel.bvh.build_lbvh import check_leaf_costs
 from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
+from rayaccel.bvh.linked import LinkedTree, collapsed_to_canonical
 from rayaccel.bvh.morton import morton_codes
 from rayaccel.bvh.radix_sort import radix_sort
 from rayaccel.bvh.refit import half_area
@@ -203,15 +203,7 @@ def build_insertion_refs(
     )
     prim_index = np.ascontiguousarray(prim_id[order], dtype=np.int32)
     tree = LinkedTree(left, right, lo, hi, first, count, prim_index)
-    return linked_to_canonical(
-        tree,
-        root,
-        n_prims,
-        collapse=True,
-        max_leaf_size=opt.max_leaf_size,
-        inner_cost=opt.traversal_cost,
-        prim_cost=opt.intersection_cost,
-    )
+    return collapsed_to_canonical(tree, root, n_prims, opt)
 
 
 @register(

@@ -37,7 +37,7 @@ from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import reference_boxes
 from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
+from rayaccel.bvh.linked import LinkedTree, collapsed_to_canonical
 from rayaccel.bvh.morton import count_leading_zeros, morton_codes
 from rayaccel.bvh.radix_sort import radix_sort
 from rayaccel.bvh.refs import BuildRefs
@@ -144,12 +144,13 @@ def _leaf_boxes(order, prim_lo, prim_hi, lo, hi, first, count, n_inner):
 
 
 def sorted_leaf_tree(
-    prim_lo: np.ndarray, prim_hi: np.ndarray, morton_bits: int
+    prim_lo: np.ndarray, prim_hi: np.ndarray, prim_id: np.ndarray, morton_bits: int
 ) -> tuple[np.ndarray, LinkedTree]:
     """Sort references by Morton code; return the sorted codes and an empty linked tree.
 
     The tree has ``n - 1`` inner slots (ids ``0..n-2``) and one leaf per reference
-    (ids ``n - 1 + k``, in code order), with leaf boxes filled.
+    (ids ``n - 1 + k``, in code order), with leaf boxes filled; its ``prim_index``
+    names each leaf's primitive (``prim_id`` of the reference).
     """
     n = prim_lo.shape[0]
     bits_per_axis = 10 if morton_bits == 30 else 21
@@ -163,7 +164,8 @@ def sorted_leaf_tree(
     left = np.full(n_nodes, -1, dtype=np.int32)
     right = np.full(n_nodes, -1, dtype=np.int32)
     _leaf_boxes(order, prim_lo, prim_hi, lo, hi, first, count, n - 1)
-    return codes, LinkedTree(left, right, lo, hi, first, count, order)
+    prim_index = np.ascontiguousarray(prim_id[order], dtype=np.int32)
+    return codes, LinkedTree(left, right, lo, hi, first, count, prim_index)
 
 
 def build_lbvh_refs(
@@ -171,19 +173,10 @@ def build_lbvh_refs(
 ) -> Bvh2:
     """Build an LBVH over reference boxes (``prim_id`` maps references to primitives)."""
     n = prim_lo.shape[0]
-    codes, tree = sorted_leaf_tree(prim_lo, prim_hi, opt.morton_bits)
-    tree = tree._replace(prim_index=np.ascontiguousarray(prim_id[tree.prim_index]))
+    codes, tree = sorted_leaf_tree(prim_lo, prim_hi, prim_id, opt.morton_bits)
     if n > 1:
         _karras_kernel(codes, tree.left, tree.right)
-    return linked_to_canonical(
-        tree,
-        0,
-        n_prims,
-        collapse=True,
-        max_leaf_size=opt.max_leaf_size,
-        inner_cost=opt.traversal_cost,
-        prim_cost=opt.intersection_cost,
-    )
+    return collapsed_to_canonical(tree, 0, n_prims, opt)
 
 
 @register(

@@ -40,7 +40,7 @@ from rayaccel._variant import register
 from rayaccel.bvh._build_common import reference_boxes
 from rayaccel.bvh.build_lbvh import check_leaf_costs, sorted_leaf_tree
 from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import linked_to_canonical
+from rayaccel.bvh.linked import collapsed_to_canonical
 from rayaccel.bvh.refs import BuildRefs
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
@@ -195,21 +195,12 @@ def build_ploc_refs(
 ) -> Bvh2:
     """Build a PLOC tree over reference boxes (``prim_id`` maps references to primitives)."""
     n = prim_lo.shape[0]
-    _, tree = sorted_leaf_tree(prim_lo, prim_hi, opt.morton_bits)
-    tree = tree._replace(prim_index=np.ascontiguousarray(prim_id[tree.prim_index]))
+    _, tree = sorted_leaf_tree(prim_lo, prim_hi, prim_id, opt.morton_bits)
     root = 0
     if n > 1:
         max_chunks = 4 * numba.get_num_threads()
         root = int(_ploc_kernel(n, opt.radius, tree.left, tree.right, tree.lo, tree.hi, max_chunks))
-    return linked_to_canonical(
-        tree,
-        root,
-        n_prims,
-        collapse=True,
-        max_leaf_size=opt.max_leaf_size,
-        inner_cost=opt.traversal_cost,
-        prim_cost=opt.intersection_cost,
-    )
+    return collapsed_to_canonical(tree, root, n_prims, opt)
 
 
 @register(

@@ -34,7 +34,7 @@ collapse two pieces of one triangle into one leaf; the copies are then dropped
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import prange
@@ -353,3 +353,21 @@ def linked_to_canonical(
         n_prims=n_prims,
     )
     return remove_leaf_duplicates(bvh)
+
+
+def collapsed_to_canonical(tree: LinkedTree, root: int, n_prims: int, options: Any) -> Bvh2:
+    """:func:`linked_to_canonical` with SAH leaf collapsing, constants taken from ``options``.
+
+    ``options`` is any builder or step options object with ``max_leaf_size``,
+    ``traversal_cost`` and ``intersection_cost`` (LBVH, PLOC, insertion, treelets,
+    ``+collapse``).
+    """
+    return linked_to_canonical(
+        tree,
+        root,
+        n_prims,
+        collapse=True,
+        max_leaf_size=options.max_leaf_size,
+        inner_cost=options.traversal_cost,
+        prim_cost=options.intersection_cost,
+    )

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from rayaccel._variant import register
 from rayaccel.bvh.build_lbvh import check_leaf_costs
 from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import linked_to_canonical, to_linked
+from rayaccel.bvh.linked import collapsed_to_canonical, to_linked
 from rayaccel.scene.mesh import TriangleMesh
 
 
@@ -52,12 +52,4 @@ def collapse_leaves(bvh: Bvh2, mesh: TriangleMesh, options: CollapseOptions | No
     """Return ``bvh`` with SAH leaf collapsing applied (see the module docstring)."""
     opt = options or CollapseOptions()
     tree, _ = to_linked(bvh)
-    return linked_to_canonical(
-        tree,
-        0,
-        bvh.n_prims,
-        collapse=True,
-        max_leaf_size=opt.max_leaf_size,
-        inner_cost=opt.traversal_cost,
-        prim_cost=opt.intersection_cost,
-    )
+    return collapsed_to_canonical(tree, 0, bvh.n_prims, opt)

@@ -54,7 +54,7 @@ from rayaccel._variant import register
 from rayaccel.bvh._build_common import triangle_bounds
 from rayaccel.bvh.build_lbvh import check_leaf_costs
 from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
+from rayaccel.bvh.linked import LinkedTree, collapsed_to_canonical
 from rayaccel.bvh.refit import half_area, refit_collapse
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
@@ -483,12 +483,4 @@ def treelet(bvh: Bvh2, mesh: TriangleMesh, options: TreeletOptions | None = None
             tree.left, tree.right, tree.lo, tree.hi, cost, n_prim, task_start, order,
             np.int32(opt.treelet_size), max_leaf, c_inner, c_prim,
         )  # fmt: skip
-    return linked_to_canonical(
-        tree,
-        0,
-        bvh.n_prims,
-        collapse=True,
-        max_leaf_size=opt.max_leaf_size,
-        inner_cost=opt.traversal_cost,
-        prim_cost=opt.intersection_cost,
-    )
+    return collapsed_to_canonical(tree, 0, bvh.n_prims, opt)
