@@ -445,18 +445,14 @@ def _bin_parallel(refs, begin, end, cb_lo, scale, n_bins, n_chunks):
         lo_i = begin + c * size
         hi_i = min(end, lo_i + size)
         bin_prims(refs, lo_i, hi_i, cb_lo, scale, n_bins, counts_c[c], box_c[c])
-    counts = np.zeros((3, n_bins), dtype=np.int32)
+    counts = np.empty((3, n_bins), dtype=np.int32)
     bin_box = np.empty((3, n_bins, 8), dtype=np.float32)
-    for a in range(3):
-        for b in range(n_bins):
-            for k in range(4):
-                bin_box[a, b, k] = np.inf
-                bin_box[a, b, 4 + k] = -np.inf
-            for c in range(n_chunks):
+    _reset_bins(counts, bin_box, n_bins)
+    for c in range(n_chunks):
+        for a in range(3):
+            for b in range(n_bins):
                 counts[a, b] += counts_c[c, a, b]
-                for k in range(3):
-                    bin_box[a, b, k] = min(bin_box[a, b, k], box_c[c, a, b, k])
-                    bin_box[a, b, 4 + k] = max(bin_box[a, b, 4 + k], box_c[c, a, b, 4 + k])
+                grow_box_row(bin_box, a, b, box_c[c, a], b)
     return counts, bin_box
 
 
