@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
@@ -182,3 +183,11 @@ def _make_ray_set(cache: SceneCache, name: str):
 def scenes_cache() -> SceneCache:
     """The session-wide :class:`SceneCache`."""
     return SceneCache()
+
+
+@pytest.fixture
+def threads():
+    """Set numba's thread count for a block (call the fixture); restore it afterwards."""
+    before = numba.get_num_threads()
+    yield numba.set_num_threads
+    numba.set_num_threads(before)

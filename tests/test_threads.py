@@ -26,14 +26,6 @@ needs_two_threads = pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2,
                                        reason="needs at least 2 numba threads")
 
 
-@pytest.fixture
-def threads():
-    """Set numba's thread count for a block; restore it afterwards."""
-    before = numba.get_num_threads()
-    yield numba.set_num_threads
-    numba.set_num_threads(before)
-
-
 def _parallel_options(builder: str) -> dict:
     """Options that push a builder onto its parallel paths for a mid-size mesh."""
     fields = {f.name for f in dataclasses.fields(registry.get(builder).options)}

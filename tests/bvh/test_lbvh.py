@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import pytest
 
@@ -89,10 +88,3 @@ def test_bad_options_name_the_option():
                       "max_leaf_size"), ({"intersection_cost": 0}, "intersection_cost")):
         with pytest.raises(InvalidInputError, match=name):
             LbvhOptions(**bad)
-
-
-@pytest.fixture
-def threads():
-    before = numba.get_num_threads()
-    yield numba.set_num_threads
-    numba.set_num_threads(before)

@@ -121,13 +121,6 @@ def serial_canonical(tree: LinkedTree, root: int) -> tuple[np.ndarray, ...]:
     return out_lo, out_hi, out_first, out_count, np.array(out_prim, np.int32)
 
 
-@pytest.fixture
-def threads():
-    before = numba.get_num_threads()
-    yield numba.set_num_threads
-    numba.set_num_threads(before)
-
-
 @pytest.mark.parametrize("n_threads", [1, 2])
 @pytest.mark.parametrize(("shape", "n_leaves"), [("random", 1500), ("random", 40), ("chain", 600)])
 def test_parallel_conversion_equals_the_serial_one(threads, n_threads, shape, n_leaves):
