@@ -47,13 +47,13 @@ from rayaccel._variant import register
 from rayaccel.bvh._build_common import depth_forces_median, triangle_ref_rows
 from rayaccel.bvh.build_binned_sah import (
     MAX_BINS,
-    MIN_BINS,
     _best_split,
     _bin_scales,
     _partition,
     _ref_range_bounds,
     _reset_bins,
     bin_prims,
+    node_bin_count,
     ref_rows,
 )
 from rayaccel.bvh.layout import Bvh2
@@ -76,7 +76,8 @@ class SbvhOptions:
         Extra references allowed, as a fraction of the triangle count (0..4):
         ``n_refs <= (1 + duplication_budget) · n``.
     n_bins : int
-        Object-split bins per axis (2..256).
+        Object-split bins per axis of large nodes (2..256; small nodes use fewer, as in
+        ``bvh2.binned_sah``).
     n_spatial_bins : int
         Spatial-split bins per axis (2..256; NVIDIA's code uses 128).
     spatial_depth_limit : int
@@ -279,7 +280,7 @@ def _build_sbvh_task(
         axis = -1
         split_bin = -1
         cost = np.inf
-        node_bins = min(n_bins, max(MIN_BINS, count))
+        node_bins = node_bin_count(n_bins, count)
         if not forced and _bin_scales(box, node_bins, scale):
             _reset_bins(counts, bin_box, node_bins)
             for a in range(3):
