@@ -80,7 +80,7 @@ def main() -> None:
     accel = ra.build(mesh, "bvh2.binned_sah")
     hits = accel.trace(primary)
     diffuse, _ = diffuse_rays(primary, hits, mesh.normals(), seed=1)
-    packed = traverse_stack.packed_layout(accel.structure, mesh, None)
+    pairs = traverse_stack.stack_layout(accel.structure, mesh, None)
 
     with tempfile.TemporaryDirectory() as folder:
         stripped = stripped_module(Path(folder))
@@ -100,7 +100,7 @@ def main() -> None:
                 for name, kernel_for in kernels.items():
                     start = time.perf_counter()
                     hit = traverse_stack.run_trace(
-                        kernel_for, packed.arrays(), rays, "closest", name == "stats"
+                        kernel_for, pairs.arrays(), rays, "closest", name == "stats"
                     )
                     elapsed = time.perf_counter() - start
                     best[name] = min(best.get(name, np.inf), elapsed)

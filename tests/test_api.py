@@ -151,11 +151,14 @@ def test_derived_layout_is_cached_and_counted():
     assert before == accel.structure.nbytes()
     assert accel.derived("bvh2.packed") is None
     accel.intersect([[0, 0, 10]], (0, 0, -1))
+    # bvh2.stack traces the pairs rows, derived from the packed layout (both kept).
     packed = accel.derived("bvh2.packed")
-    assert packed is not None
-    assert accel.info()["bytes"] == before + packed.nbytes()
+    pairs = accel.derived("bvh2.pairs")
+    assert packed is not None and pairs is not None
+    assert accel.info()["bytes"] == before + packed.nbytes() + pairs.nbytes()
     accel.intersect([[0, 0, 10]], (0, 0, -1))
     assert accel.derived("bvh2.packed") is packed
+    assert accel.derived("bvh2.pairs") is pairs
 
 
 def test_builder_options_round_trip():

@@ -1,7 +1,7 @@
 """The wide traversal ``bvh2.wide``: the vector box tests, the collapsed rows, edge cases.
 
 The registry-driven conformance suite checks ``bvh2.wide`` (width 8) against the
-brute-force oracle on every scene; here the 4- and 8-lane slab tests are compared with
+brute-force oracle on every scene; here the 2-, 4- and 8-lane slab tests are compared with
 the scalar one lane by lane, the collapsed rows are checked against the binary tree they come from,
 and the degenerate trees of the stackless tests are traced.
 """
@@ -19,7 +19,7 @@ from rayaccel.bvh.traverse_stack import packed_layout
 from rayaccel.bvh.wide import WIDTHS, count_column, ref_column, wide_layout
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb import ray_box_entry
-from rayaccel.kernels.aabb_wide import slab_test4, slab_test8
+from rayaccel.kernels.aabb_wide import slab_test2, slab_test4, slab_test8
 from rayaccel.rays.batch import RayBatch
 
 
@@ -40,8 +40,13 @@ def _both_tests(rows, width, origin, inv, t_lo, t_hi, wide_t, wide_mask, scalar_
                     rows, w, nx, fx, ny, fy, nz, fz, ox, oy, oz, ix, iy, iz, t_lo[r], t_hi[r],
                     lane_t,
                 )  # fmt: skip
-            else:
+            elif width == 4:
                 wide_mask[r, w] = slab_test4(
+                    rows, w, nx, fx, ny, fy, nz, fz, ox, oy, oz, ix, iy, iz, t_lo[r], t_hi[r],
+                    lane_t,
+                )  # fmt: skip
+            else:
+                wide_mask[r, w] = slab_test2(
                     rows, w, nx, fx, ny, fy, nz, fz, ox, oy, oz, ix, iy, iz, t_lo[r], t_hi[r],
                     lane_t,
                 )  # fmt: skip
@@ -55,8 +60,9 @@ def _both_tests(rows, width, origin, inv, t_lo, t_hi, wide_t, wide_mask, scalar_
                 )  # fmt: skip
 
 
-@pytest.mark.parametrize("width", WIDTHS)
+@pytest.mark.parametrize("width", [2, *WIDTHS])
 def test_vector_slab_test_matches_the_scalar_one_lane_by_lane(width):
+    """Width 2 is the pairs row of ``bvh2.stack`` (same structure-of-arrays planes)."""
     rng = np.random.default_rng(0)
     n_rows, n_rays = 64, 400
     lo = rng.uniform(-2, 1, (n_rows, width, 3)).astype(np.float32)

@@ -104,6 +104,17 @@ def _signature(box: Any, columns: tuple[Any, ...], out: Any) -> Any:
 
 
 @intrinsic
+def slab_test2(
+    typingctx: Any, box: Any, row: Any, near_x: Any, far_x: Any, near_y: Any, far_y: Any,
+    near_z: Any, far_z: Any, ox: Any, oy: Any, oz: Any, ix: Any, iy: Any, iz: Any,
+    t_lo: Any, t_hi: Any, out: Any,
+) -> Any:  # fmt: skip
+    """Two slab tests in ``<2 x float>`` vectors (see the module docstring)."""
+    columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
+    return _signature(box, columns, out), _slab_codegen(2)
+
+
+@intrinsic
 def slab_test4(
     typingctx: Any, box: Any, row: Any, near_x: Any, far_x: Any, near_y: Any, far_y: Any,
     near_z: Any, far_z: Any, ox: Any, oy: Any, oz: Any, ix: Any, iy: Any, iz: Any,
