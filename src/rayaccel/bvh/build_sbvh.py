@@ -9,7 +9,8 @@ lowers the SAH, so that large or long triangles no longer inflate whole subtrees
    giving cost ``C_o`` and child boxes B1, B2;
 2. only if ``A(B1 ∩ B2) / A(root) > alpha`` are spatial splits considered (alpha
    decides *consideration*, the SAH decides the split; default 1e-5);
-3. spatial split: ``n_spatial_bins`` equal bins per axis over the node box; each
+3. spatial split: ``n_spatial_bins`` equal bins per axis over the node box (fewer
+   in small nodes, as for object bins); each
    reference is chopped at the bin planes it crosses, each piece growing its bin's
    box ("chopped binning"); it counts once in its entry bin and once in its exit bin;
    a sweep evaluates every plane;
@@ -79,7 +80,9 @@ class SbvhOptions:
         Object-split bins per axis of large nodes (2..256; small nodes use fewer, as in
         ``bvh2.binned_sah``).
     n_spatial_bins : int
-        Spatial-split bins per axis (2..256; NVIDIA's code uses 128).
+        Spatial-split bins per axis of large nodes (2..256; NVIDIA's code uses 128);
+        small nodes use ``min(n_spatial_bins, 4 + n // 20)`` like the object bins (on
+        the kitchen: build 3.1–3.8 s → 2.8–2.9 s, SAH 37.94 → 37.99).
     spatial_depth_limit : int
         No spatial splits at or below this depth.
     max_leaf_size : int
@@ -314,10 +317,12 @@ def _build_sbvh_task(
             if ex > 0 and ey > 0 and ez > 0:
                 overlap = np.float64(ex) * ey + np.float64(ey) * ez + np.float64(ez) * ex
             try_spatial = overlap > alpha * root_area
+        # Spatial bins follow the node size as object bins do (node_bin_count).
+        node_sbins = node_bin_count(n_sbins, count)
         if try_spatial:
             # 3. Chopped binning: each reference is cut at the planes it crosses.
             for a in range(3):
-                for b in range(n_sbins):
+                for b in range(node_sbins):
                     s_enter[a, b] = 0
                     s_exit[a, b] = 0
                     for k in range(3):
@@ -329,16 +334,16 @@ def _build_sbvh_task(
                     extent = np.float64(box[3 + a]) - box[a]
                     if extent <= 0:
                         continue
-                    inv_width = n_sbins / extent
-                    b0 = _spatial_bin(refs[i, a], box[a], inv_width, n_sbins)
-                    b1 = _spatial_bin(refs[i, 4 + a], box[a], inv_width, n_sbins)
+                    inv_width = node_sbins / extent
+                    b0 = _spatial_bin(refs[i, a], box[a], inv_width, node_sbins)
+                    b1 = _spatial_bin(refs[i, 4 + a], box[a], inv_width, node_sbins)
                     s_enter[a, b0] += 1
                     s_exit[a, b1] += 1
                     for k in range(3):
                         cur[k] = refs[i, k]
                         cur[3 + k] = refs[i, 4 + k]
                     for b in range(b0, b1):
-                        plane = box[a] + (b + 1) * extent / n_sbins
+                        plane = box[a] + (b + 1) * extent / node_sbins
                         _split_reference(tri, prim, cur, a, plane, piece_l, piece_r)
                         for k in range(3):
                             s_box[a, b, k] = min(s_box[a, b, k], piece_l[k])
@@ -362,7 +367,7 @@ def _build_sbvh_task(
                 rhi0 = -np.inf
                 rhi1 = -np.inf
                 rhi2 = -np.inf
-                for b in range(n_sbins - 1, 0, -1):
+                for b in range(node_sbins - 1, 0, -1):
                     n_right += s_exit[a, b]
                     rlo0 = min(rlo0, s_box[a, b, 0])
                     rlo1 = min(rlo1, s_box[a, b, 1])
@@ -381,7 +386,7 @@ def _build_sbvh_task(
                 for k in range(3):
                     cur[k] = np.inf
                     cur[3 + k] = -np.inf
-                for b in range(n_sbins - 1):
+                for b in range(node_sbins - 1):
                     n_left += s_enter[a, b]
                     for k in range(3):
                         cur[k] = min(cur[k], s_box[a, b, k])
@@ -416,15 +421,15 @@ def _build_sbvh_task(
             # 4. Spatial partition with unsplitting; right references go to scratch.
             a = s_axis
             extent = np.float64(box[3 + a]) - box[a]
-            inv_width = n_sbins / extent
-            plane = box[a] + (s_split + 1) * extent / n_sbins
+            inv_width = node_sbins / extent
+            plane = box[a] + (s_split + 1) * extent / node_sbins
             # Child boxes of the sweep, for the unsplitting costs.
             for k in range(3):
                 box_l[k] = np.inf
                 box_l[3 + k] = -np.inf
                 box_r[k] = np.inf
                 box_r[3 + k] = -np.inf
-            for b in range(n_sbins):
+            for b in range(node_sbins):
                 for k in range(3):
                     if b <= s_split:
                         box_l[k] = min(box_l[k], s_box[a, b, k])
@@ -437,8 +442,8 @@ def _build_sbvh_task(
             w = lo_i
             n_scr = 0
             for i in range(lo_i, hi_i):
-                b0 = _spatial_bin(refs[i, a], box[a], inv_width, n_sbins)
-                b1 = _spatial_bin(refs[i, 4 + a], box[a], inv_width, n_sbins)
+                b0 = _spatial_bin(refs[i, a], box[a], inv_width, node_sbins)
+                b1 = _spatial_bin(refs[i, 4 + a], box[a], inv_width, node_sbins)
                 side = 0
                 if b1 <= s_split:
                     side = -1
