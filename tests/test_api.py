@@ -154,7 +154,8 @@ def test_derived_layout_is_cached_and_counted():
     # bvh2.stack traces the pairs rows, derived from the packed layout (both kept).
     packed = accel.derived("bvh2.packed")
     pairs = accel.derived("bvh2.pairs")
-    assert packed is not None and pairs is not None
+    assert packed is not None
+    assert pairs is not None
     assert accel.info()["bytes"] == before + packed.nbytes() + pairs.nbytes()
     accel.intersect([[0, 0, 10]], (0, 0, -1))
     assert accel.derived("bvh2.packed") is packed

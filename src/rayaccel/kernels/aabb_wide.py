@@ -1,8 +1,9 @@
-"""Four or eight ray/box slab tests at once, as explicit LLVM vector code.
+"""Two, four or eight ray/box slab tests at once, as explicit LLVM vector code.
 
 The robust slab test of :mod:`rayaccel.kernels.aabb` (Williams et al. 2005 plane
 selection, Ize 2013 2-ulp exit widening, NaN never tightening a bound) applied to the
-child boxes of a wide BVH row (:mod:`rayaccel.bvh.wide`), whose planes are stored
+child boxes of a wide BVH row (:mod:`rayaccel.bvh.wide`) or of a binary row of the
+pairs layout (:mod:`rayaccel.bvh.pairs`, two lanes), whose planes are stored
 structure-of-arrays: the children's ``lo.x`` side by side, then their ``hi.x``, and
 so on. Each slab is one ``<N x float>`` load, subtract and multiply; the bounds are
 merged with ordered compares and selects, which is exactly the scalar test's
@@ -10,10 +11,10 @@ merged with ordered compares and selects, which is exactly the scalar test's
 
 numba leaves LLVM's SLP vectorizer off by default, and the loop vectorizer does not
 touch a 4-iteration loop, so a plain lane loop compiles to scalar code; the
-intrinsics :data:`slab_test4` and :data:`slab_test8` write the vector IR themselves.
-They compile for the CPU only (the CUDA traversals have their own box test).
+intrinsics :data:`slab_test2`, :data:`slab_test4` and :data:`slab_test8` write the
+vector IR themselves. They compile for the CPU only (the CUDA traversals have their own box test).
 
-Signature (both): ``slab_testN(box, row, near_x, far_x, near_y, far_y, near_z, far_z,
+Signature (all three): ``slab_testN(box, row, near_x, far_x, near_y, far_y, near_z, far_z,
 ox, oy, oz, ix, iy, iz, t_lo, t_hi, out) -> int32``. ``box`` is a 2D float32 array;
 the N lanes of each plane start at the given columns of row ``row`` (the caller picks
 near and far planes by the signs of ``ix, iy, iz``). Lane ``i`` of ``out`` gets
