@@ -71,12 +71,17 @@ class PairsBvh2:
         return int(self.rows.nbytes)
 
 
-def _inline_leaf(ref: np.ndarray, leaf_first: IntArray, leaf_count: IntArray) -> tuple:
-    """Map packed references (``~leaf`` for leaves) to ``(~first triangle, count)``."""
+def _inline_leaf(
+    ref: IntArray, leaf_first: IntArray, leaf_count: IntArray
+) -> tuple[IntArray, IntArray]:
+    """Map packed references (``~leaf`` for leaves) to ``(~first triangle, count)``.
+
+    Inner references pass through with count 0. Every tree has at least one leaf.
+    """
     is_leaf = ref < 0
     leaf = np.where(is_leaf, ~ref, 0)
-    inlined = np.where(is_leaf, ~leaf_first[leaf] if leaf_first.size else ref, ref)
-    count = np.where(is_leaf, leaf_count[leaf] if leaf_count.size else 0, 0)
+    inlined = np.where(is_leaf, ~leaf_first[leaf], ref)
+    count = np.where(is_leaf, leaf_count[leaf], 0)
     return inlined.astype(INDEX), count.astype(INDEX)
 
 
