@@ -90,7 +90,10 @@ class SbvhOptions:
     traversal_cost, intersection_cost : float
         SAH constants.
     parallel_threshold : int
-        Subtrees with fewer references are built one per thread.
+        Subtrees with fewer references are built one per thread; the build raises it to
+        ``n // (4 · threads)`` for ``n`` references when that is larger, since the nodes
+        above it are split serially (about six subtrees per thread keep the threads
+        balanced). Any value gives the same tree.
     """
 
     alpha: float = 1e-5
@@ -675,7 +678,9 @@ def build_sbvh(
     )
     # Top phase: split large nodes serially; collect the subtrees below the threshold.
     tasks = np.empty((capacity + 1, 5), dtype=np.int32)
-    stop = int(opt.parallel_threshold)
+    # Fewer, larger subtrees when threads are few: the top phase is serial (on the
+    # kitchen, 2 threads: 32,768 -> 180k cut the build by 10-13%, same tree).
+    stop = max(int(opt.parallel_threshold), n // (4 * numba.get_num_threads()))
     next_node, n_tasks = _build_sbvh_task(
         rows, tri, 0, n, capacity, 0, 0, 1, stop, *args, left_of, right_of, t_first, t_count,
         tasks,
