@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layout import CACHE_LINE, Bvh2, PackedBvh2, aligned_zeros
+from rayaccel.bvh.layout import CACHE_LINE, Bvh2, PackedBvh2, aligned_zeros, memoised_layout
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 
 #: Bytes per up-link and per skip row.
@@ -91,12 +91,7 @@ def link_packed(packed: PackedBvh2) -> LinkedBvh2:
 
 def linked_layout(packed: PackedBvh2, cache: dict[str, Any] | None) -> LinkedBvh2:
     """Return the up-links of ``packed``, memoised in ``cache`` under ``"bvh2.links"``."""
-    if cache is not None and "bvh2.links" in cache:
-        return cache["bvh2.links"]  # type: ignore[no-any-return]
-    linked = link_packed(packed)
-    if cache is not None:
-        cache["bvh2.links"] = linked
-    return linked
+    return memoised_layout(cache, "bvh2.links", lambda: link_packed(packed))
 
 
 class SkipArrays(NamedTuple):
@@ -191,11 +186,10 @@ def _skip_kernel(bvh, rows, max_depth):
 
 def skip_layout(bvh: Bvh2, packed: PackedBvh2, cache: dict[str, Any] | None) -> SkipBvh2:
     """Return the skip-pointer layout of ``bvh``, memoised in ``cache`` under ``"bvh2.skip"``."""
-    if cache is not None and "bvh2.skip" in cache:
-        return cache["bvh2.skip"]  # type: ignore[no-any-return]
-    rows = aligned_zeros((bvh.n_nodes, 8), REAL, CACHE_LINE)
-    _skip_kernel(bvh.arrays(), rows, bvh.depth())
-    skip = SkipBvh2(rows, packed)
-    if cache is not None:
-        cache["bvh2.skip"] = skip
-    return skip
+
+    def make() -> SkipBvh2:
+        rows = aligned_zeros((bvh.n_nodes, 8), REAL, CACHE_LINE)
+        _skip_kernel(bvh.arrays(), rows, bvh.depth())
+        return SkipBvh2(rows, packed)
+
+    return memoised_layout(cache, "bvh2.skip", make)

@@ -35,9 +35,6 @@ from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 #: Column of child ``c``'s reference and of its leaf count.
 REF_COLUMN = 12
 COUNT_COLUMN = 14
-#: Columns of the near/far planes: plane ``k`` (lo.x, hi.x, lo.y, ...) of child ``c``
-#: is column ``2 k + c``.
-PLANE_COLUMNS = 12
 
 
 class PairsArrays(NamedTuple):

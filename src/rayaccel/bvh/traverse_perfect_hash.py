@@ -63,6 +63,7 @@ from rayaccel.bvh.layout import (
     Bvh2,
     PackedBvh2,
     aligned_zeros,
+    memoised_layout,
 )
 from rayaccel.bvh.links import LINK_BYTES, link_packed
 from rayaccel.bvh.perfect_hash import ENTRY_BYTES, PerfectHash, build_perfect_hash
@@ -226,12 +227,7 @@ def key_packed(packed: PackedBvh2) -> KeyedBvh2:
 
 def keyed_layout(packed: PackedBvh2, cache: dict[str, Any] | None) -> KeyedBvh2:
     """Return the keyed layout of ``packed``, memoised in ``cache`` under ``"bvh2.keyed"``."""
-    if cache is not None and "bvh2.keyed" in cache:
-        return cache["bvh2.keyed"]  # type: ignore[no-any-return]
-    keyed = key_packed(packed)
-    if cache is not None:
-        cache["bvh2.keyed"] = keyed
-    return keyed
+    return memoised_layout(cache, "bvh2.keyed", lambda: key_packed(packed))
 
 
 @functools.cache

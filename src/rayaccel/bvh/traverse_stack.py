@@ -50,6 +50,7 @@ from rayaccel.bvh.layout import (
     TRIANGLE_BYTES,
     Bvh2,
     PackedBvh2,
+    memoised_layout,
     pack_bvh2,
 )
 from rayaccel.bvh.pairs import COUNT_COLUMN, REF_COLUMN, PairsBvh2, pairs_layout
@@ -238,22 +239,14 @@ PARALLEL_MIN_RAYS = 4096
 
 def packed_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) -> PackedBvh2:
     """Return the packed layout of ``bvh``, memoised in ``cache`` when given."""
-    if cache is not None and "bvh2.packed" in cache:
-        return cache["bvh2.packed"]  # type: ignore[no-any-return]
-    packed = pack_bvh2(bvh, mesh.hit_rows())
-    if cache is not None:
-        cache["bvh2.packed"] = packed
-    return packed
+    return memoised_layout(cache, "bvh2.packed", lambda: pack_bvh2(bvh, mesh.hit_rows()))
 
 
 def stack_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) -> PairsBvh2:
     """Return the pairs layout ``bvh2.stack`` traces, memoised in ``cache`` when given."""
-    if cache is not None and "bvh2.pairs" in cache:
-        return cache["bvh2.pairs"]  # type: ignore[no-any-return]
-    pairs = pairs_layout(packed_layout(bvh, mesh, cache))
-    if cache is not None:
-        cache["bvh2.pairs"] = pairs
-    return pairs
+    return memoised_layout(
+        cache, "bvh2.pairs", lambda: pairs_layout(packed_layout(bvh, mesh, cache))
+    )
 
 
 def run_trace(

@@ -44,6 +44,7 @@ from rayaccel.bvh.layout import (
     STACK_ENTRY_BYTES,
     TRIANGLE_BYTES,
     Bvh2,
+    memoised_layout,
 )
 from rayaccel.bvh.traversal_steps import box_entry, intersect_leaf, ray_prologue
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
@@ -246,13 +247,9 @@ def wide_bvh(
     bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None, width: int = 8
 ) -> WideBvh:
     """Return the ``width``-wide layout of ``bvh``, memoised in ``cache`` when given."""
-    name = f"bvh2.wide{width}"
-    if cache is not None and name in cache:
-        return cache[name]  # type: ignore[no-any-return]
-    wide = wide_layout(packed_layout(bvh, mesh, cache), width)
-    if cache is not None:
-        cache[name] = wide
-    return wide
+    return memoised_layout(
+        cache, f"bvh2.wide{width}", lambda: wide_layout(packed_layout(bvh, mesh, cache), width)
+    )
 
 
 @register(
