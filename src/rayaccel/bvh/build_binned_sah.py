@@ -96,14 +96,16 @@ def _bin_prims_py(refs, begin, end, cb_lo, scale, n_bins, counts, bin_box):
     A reference row is ``[lo.x, lo.y, lo.z, id, hi.x, hi.y, hi.z, -]``; its binning key is
     the doubled centroid ``lo + hi`` (no multiply, same order as the centroid).
     """
-    for i in range(begin, end):
+    for k in range(end - begin):
+        # Unsigned indices: no negative-index wraparound code per access.
+        i = np.uint64(begin + k)
         for a in range(3):
             b = int((refs[i, a] + refs[i, 4 + a] - cb_lo[a]) * scale[a])
             if b > n_bins - 1:
                 b = n_bins - 1
             if b < 0:
                 b = 0
-            counts[a, b] += 1
+            counts[a, np.uint64(b)] += 1
             grow_box_row(bin_box, a, b, refs, i)
 
 
@@ -250,26 +252,28 @@ def _partition(
     i = begin
     j = end - 1
     while i <= j:
-        b = int((refs[i, axis] + refs[i, 4 + axis] - cb_lo_axis) * scale_axis)
+        ui = np.uint64(i)
+        b = int((refs[ui, axis] + refs[ui, 4 + axis] - cb_lo_axis) * scale_axis)
         if b > n_bins - 1:
             b = n_bins - 1
         if b < 0:
             b = 0
         if b <= split_bin:
             for k in range(3):
-                c = refs[i, k] + refs[i, 4 + k]
+                c = refs[ui, k] + refs[ui, 4 + k]
                 left_cb[k] = min(left_cb[k], c)
                 left_cb[3 + k] = max(left_cb[3 + k], c)
             i += 1
         else:
+            uj = np.uint64(j)
             for k in range(3):
-                c = refs[i, k] + refs[i, 4 + k]
+                c = refs[ui, k] + refs[ui, 4 + k]
                 right_cb[k] = min(right_cb[k], c)
                 right_cb[3 + k] = max(right_cb[3 + k], c)
             for k in range(8):
-                tmp = refs[i, k]
-                refs[i, k] = refs[j, k]
-                refs[j, k] = tmp
+                tmp = refs[ui, k]
+                refs[ui, k] = refs[uj, k]
+                refs[uj, k] = tmp
             j -= 1
     return i
 
