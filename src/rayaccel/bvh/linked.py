@@ -151,28 +151,32 @@ def _emit_walk_py(
                 next_id += 2
                 continue
             node = gather[a]
-        if as_leaf[node]:
+        # Ids, slots and reference positions are non-negative: indexing with unsigned
+        # integers spares numba's negative-index wraparound code on every access.
+        u = np.uint64(node)
+        us = np.uint64(slot)
+        if as_leaf[u]:
             # Emit a leaf: copy the references of every original leaf below, left first.
             for k in range(3):
-                out_lo[slot, k] = lo[node, k]
-                out_hi[slot, k] = hi[node, k]
-            out_first[slot] = next_ref
-            out_count[slot] = n_prim[node]
+                out_lo[us, k] = lo[u, k]
+                out_hi[us, k] = hi[u, k]
+            out_first[us] = next_ref
+            out_count[us] = n_prim[u]
             gp = 1
             g_stack[0] = node
             while gp > 0:
                 gp -= 1
-                x = g_stack[gp]
+                x = np.uint64(g_stack[gp])
                 if left[x] < 0:
                     for r in range(first[x], first[x] + count[x]):
-                        out_prim[next_ref] = prim_index[r]
+                        out_prim[np.uint64(next_ref)] = prim_index[np.uint64(r)]
                         next_ref += 1
                 else:
                     g_stack = push(g_stack, gp, right[x])
                     g_stack = push(g_stack, gp + 1, left[x])
                     gp += 2
             continue
-        if stop and is_frontier[node]:
+        if stop and is_frontier[u]:
             # Another thread emits this subtree into the ids and references reserved here.
             task_node[n_tasks] = node
             task_slot[n_tasks] = slot
@@ -183,7 +187,7 @@ def _emit_walk_py(
             next_id += 2 * n_eff[node] - 2
             next_ref += n_prim[node]
             continue
-        if depth + height[node] > MAX_DEPTH and depth + ceil_log2(n_eff[node]) >= MAX_DEPTH - 1:
+        if depth + height[u] > MAX_DEPTH and depth + ceil_log2(n_eff[u]) >= MAX_DEPTH - 1:
             # Too deep: collect the subtree's leaves in order, re-emit them balanced.
             m = 0
             gp = 1
@@ -206,15 +210,15 @@ def _emit_walk_py(
             sp += 1
             continue
         # Inner node: allocate the sibling pair, push right then left (left emitted first).
-        out_first[slot] = next_id
-        out_count[slot] = 0
+        out_first[us] = next_id
+        out_count[us] = 0
         if stop:
             inner_slots[n_inner] = slot
             n_inner += 1
-        s_node[sp] = right[node]
+        s_node[sp] = right[u]
         s_slot[sp] = next_id + 1
         s_depth[sp] = depth + 1
-        s_node[sp + 1] = left[node]
+        s_node[sp + 1] = left[u]
         s_slot[sp + 1] = next_id
         s_depth[sp + 1] = depth + 1
         sp += 2
@@ -227,11 +231,13 @@ _emit_walk = cpu_inline(_emit_walk_py)
 
 def _inner_box_py(out_lo, out_hi, out_first, out_count, i):
     """Set inner slot ``i``'s box to the union of its children's (no-op for a leaf)."""
-    if out_count[i] == 0:
-        c = out_first[i]
+    u = np.uint64(i)
+    if out_count[u] == 0:
+        c = np.uint64(out_first[u])
+        d = np.uint64(out_first[u] + 1)
         for k in range(3):
-            out_lo[i, k] = min(out_lo[c, k], out_lo[c + 1, k])
-            out_hi[i, k] = max(out_hi[c, k], out_hi[c + 1, k])
+            out_lo[u, k] = min(out_lo[c, k], out_lo[d, k])
+            out_hi[u, k] = max(out_hi[c, k], out_hi[d, k])
 
 
 _inner_box = cpu_inline(_inner_box_py)

@@ -44,8 +44,10 @@ def _radix_sort_kernel(keys, values, n_bits, n_chunks):
         for c in prange(n_chunks):
             for d in range(RADIX):
                 hist[c, d] = 0
+            # Unsigned indices: no negative-index wraparound code per access.
             for i in range(c * size, min(n, (c + 1) * size)):
-                hist[c, (src_k[i] >> shift) & (RADIX - 1)] += 1
+                ui = np.uint64(i)
+                hist[c, np.uint64((src_k[ui] >> shift) & (RADIX - 1))] += 1
         # Skip a pass whose digit is constant.
         used = 0
         for d in range(RADIX):
@@ -65,11 +67,13 @@ def _radix_sort_kernel(keys, values, n_bits, n_chunks):
             # Stable scatter, chunk by chunk in parallel.
             for c in prange(n_chunks):
                 for i in range(c * size, min(n, (c + 1) * size)):
-                    d = (src_k[i] >> shift) & (RADIX - 1)
+                    ui = np.uint64(i)
+                    d = np.uint64((src_k[ui] >> shift) & (RADIX - 1))
                     j = hist[c, d]
                     hist[c, d] = j + 1
-                    dst_k[j] = src_k[i]
-                    dst_v[j] = src_v[i]
+                    uj = np.uint64(j)
+                    dst_k[uj] = src_k[ui]
+                    dst_v[uj] = src_v[ui]
             src_k, dst_k = dst_k, src_k
             src_v, dst_v = dst_v, src_v
         shift += RADIX_BITS

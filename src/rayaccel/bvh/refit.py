@@ -24,10 +24,11 @@ from rayaccel.bvh.layout import MAX_DEPTH
 
 
 def _half_area_py(lo, hi, i):
-    """Half surface area of box ``i`` of ``lo``/``hi`` in float64."""
-    ex = np.float64(hi[i, 0]) - lo[i, 0]
-    ey = np.float64(hi[i, 1]) - lo[i, 1]
-    ez = np.float64(hi[i, 2]) - lo[i, 2]
+    """Half surface area of box ``i`` (``i >= 0``) of ``lo``/``hi`` in float64."""
+    u = np.uint64(i)
+    ex = np.float64(hi[u, 0]) - lo[u, 0]
+    ey = np.float64(hi[u, 1]) - lo[u, 1]
+    ez = np.float64(hi[u, 2]) - lo[u, 2]
     return ex * ey + ey * ez + ez * ex
 
 
@@ -97,34 +98,40 @@ def _collapse_node_py(
     node, left, right, lo, hi, count, max_leaf, c_inner, c_prim, collapse,
     as_leaf, height, n_eff, n_prim, cost,
 ):  # fmt: skip
-    """Finish one node whose children are done: refit, cost, collapse decision."""
-    a = left[node]
+    """Finish one node whose children are done: refit, cost, collapse decision.
+
+    Node ids are non-negative: they index as unsigned integers, which spares numba's
+    negative-index wraparound code on every access.
+    """
+    u = np.uint64(node)
+    a = left[u]
     if a < 0:
         # An original leaf.
-        as_leaf[node] = 1
-        n_eff[node] = 1
-        n_prim[node] = count[node]
-        cost[node] = c_prim * half_area(lo, hi, node) * count[node]
+        as_leaf[u] = 1
+        n_eff[u] = 1
+        n_prim[u] = count[u]
+        cost[u] = c_prim * half_area(lo, hi, node) * count[u]
         return
-    b = right[node]
+    b = np.uint64(right[u])
+    a = np.uint64(a)
     # Refit the box, then compare the split cost with a leaf's.
     for k in range(3):
-        lo[node, k] = min(lo[a, k], lo[b, k])
-        hi[node, k] = max(hi[a, k], hi[b, k])
+        lo[u, k] = min(lo[a, k], lo[b, k])
+        hi[u, k] = max(hi[a, k], hi[b, k])
     area = half_area(lo, hi, node)
-    n_prim[node] = n_prim[a] + n_prim[b]
+    n_prim[u] = n_prim[a] + n_prim[b]
     split_cost = c_inner * area + cost[a] + cost[b]
-    leaf_cost = c_prim * area * n_prim[node]
-    if collapse and n_prim[node] <= max_leaf and leaf_cost <= split_cost:
-        as_leaf[node] = 1
-        n_eff[node] = 1
-        height[node] = 0
-        cost[node] = leaf_cost
+    leaf_cost = c_prim * area * n_prim[u]
+    if collapse and n_prim[u] <= max_leaf and leaf_cost <= split_cost:
+        as_leaf[u] = 1
+        n_eff[u] = 1
+        height[u] = 0
+        cost[u] = leaf_cost
     else:
-        as_leaf[node] = 0
-        n_eff[node] = n_eff[a] + n_eff[b]
-        height[node] = 1 + max(height[a], height[b])
-        cost[node] = split_cost
+        as_leaf[u] = 0
+        n_eff[u] = n_eff[a] + n_eff[b]
+        height[u] = 1 + max(height[a], height[b])
+        cost[u] = split_cost
 
 
 _collapse_node = cpu_inline(_collapse_node_py)
@@ -183,10 +190,11 @@ def refit_collapse(root, left, right, lo, hi, count, max_leaf, c_inner, c_prim, 
         sp = 1
         while sp > 0:
             node = stack[sp - 1]
-            a = left[node]
-            if a >= 0 and not expanded[node]:
-                expanded[node] = 1
-                stack = push(stack, sp, right[node])
+            u = np.uint64(node)
+            a = left[u]
+            if a >= 0 and not expanded[u]:
+                expanded[u] = 1
+                stack = push(stack, sp, right[u])
                 stack = push(stack, sp + 1, a)
                 sp += 2
                 continue
