@@ -131,7 +131,7 @@ def _karras_kernel(codes, left, right):
 
 
 @cpu_kernel(parallel=True)
-def _leaf_boxes(order, prim_lo, prim_hi, lo, hi, first, count, n_inner):
+def _leaf_rows(order, prim_lo, prim_hi, left, right, lo, hi, first, count, n_inner):
     """Fill the leaf rows (one primitive each, in sorted order) of the linked arrays."""
     for k in prange(order.shape[0]):
         node = n_inner + k
@@ -139,6 +139,8 @@ def _leaf_boxes(order, prim_lo, prim_hi, lo, hi, first, count, n_inner):
         for a in range(3):
             lo[node, a] = prim_lo[p, a]
             hi[node, a] = prim_hi[p, a]
+        left[node] = -1
+        right[node] = -1
         first[node] = k
         count[node] = 1
 
@@ -149,8 +151,10 @@ def sorted_leaf_tree(
     """Sort references by Morton code; return the sorted codes and an empty linked tree.
 
     The tree has ``n - 1`` inner slots (ids ``0..n-2``) and one leaf per reference
-    (ids ``n - 1 + k``, in code order), with leaf boxes filled; its ``prim_index``
-    names each leaf's primitive (``prim_id`` of the reference).
+    (ids ``n - 1 + k``, in code order), with leaf rows filled; its ``prim_index``
+    names each leaf's primitive (``prim_id`` of the reference). The inner slots are
+    left uninitialised: the caller's hierarchy (Karras emission, PLOC merges) writes
+    every one of their children and the refit their boxes.
     """
     n = prim_lo.shape[0]
     bits_per_axis = 10 if morton_bits == 30 else 21
@@ -159,11 +163,11 @@ def sorted_leaf_tree(
     n_nodes = 2 * n - 1
     lo = np.empty((n_nodes, 3), dtype=np.float32)
     hi = np.empty((n_nodes, 3), dtype=np.float32)
-    first = np.zeros(n_nodes, dtype=np.int32)
-    count = np.zeros(n_nodes, dtype=np.int32)
-    left = np.full(n_nodes, -1, dtype=np.int32)
-    right = np.full(n_nodes, -1, dtype=np.int32)
-    _leaf_boxes(order, prim_lo, prim_hi, lo, hi, first, count, n - 1)
+    first = np.empty(n_nodes, dtype=np.int32)
+    count = np.empty(n_nodes, dtype=np.int32)
+    left = np.empty(n_nodes, dtype=np.int32)
+    right = np.empty(n_nodes, dtype=np.int32)
+    _leaf_rows(order, prim_lo, prim_hi, left, right, lo, hi, first, count, n - 1)
     prim_index = np.ascontiguousarray(prim_id[order], dtype=np.int32)
     return codes, LinkedTree(left, right, lo, hi, first, count, prim_index)
 

@@ -50,6 +50,9 @@ def _spread3_py(x):
 
 spread3 = cpu_inline(_spread3_py)
 
+#: Chunks of the parallel centroid-bounds pass (a constant: the result never depends on it).
+BOUNDS_CHUNKS = 64
+
 
 @cpu_kernel(parallel=True)
 def morton_codes(prim_lo, prim_hi, bits_per_axis):
@@ -63,14 +66,36 @@ def morton_codes(prim_lo, prim_hi, bits_per_axis):
         10 (30-bit codes) or 21 (63-bit codes).
     """
     n = prim_lo.shape[0]
-    # Centroid bounds (doubled centroids lo + hi: same order, no multiply).
+    # Centroid bounds (doubled centroids lo + hi: same order, no multiply), per chunk in
+    # parallel, then combined (min and max are exact, so the order does not matter).
+    n_chunks = BOUNDS_CHUNKS
+    size = (n + n_chunks - 1) // n_chunks
+    part = np.empty((n_chunks, 6))
+    for k in prange(n_chunks):
+        lo_x = lo_y = lo_z = np.inf
+        hi_x = hi_y = hi_z = -np.inf
+        for i in range(k * size, min(n, (k + 1) * size)):
+            cx = np.float64(prim_lo[i, 0]) + prim_hi[i, 0]
+            cy = np.float64(prim_lo[i, 1]) + prim_hi[i, 1]
+            cz = np.float64(prim_lo[i, 2]) + prim_hi[i, 2]
+            lo_x = min(lo_x, cx)
+            lo_y = min(lo_y, cy)
+            lo_z = min(lo_z, cz)
+            hi_x = max(hi_x, cx)
+            hi_y = max(hi_y, cy)
+            hi_z = max(hi_z, cz)
+        part[k, 0] = lo_x
+        part[k, 1] = lo_y
+        part[k, 2] = lo_z
+        part[k, 3] = hi_x
+        part[k, 4] = hi_y
+        part[k, 5] = hi_z
     c_lo = np.full(3, np.inf)
     c_hi = np.full(3, -np.inf)
-    for i in range(n):
+    for k in range(n_chunks):
         for a in range(3):
-            c = np.float64(prim_lo[i, a]) + prim_hi[i, a]
-            c_lo[a] = min(c_lo[a], c)
-            c_hi[a] = max(c_hi[a], c)
+            c_lo[a] = min(c_lo[a], part[k, a])
+            c_hi[a] = max(c_hi[a], part[k, 3 + a])
     cells = np.float64((1 << bits_per_axis) - 1)
     scale = np.zeros(3)
     for a in range(3):
