@@ -107,3 +107,26 @@ def prefetch_row(typingctx: Any, array: Any, row: Any) -> Any:
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@intrinsic
+def atomic_exchange(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
+    """Store ``value`` in ``array[index]`` atomically and return the previous value.
+
+    Sequentially consistent (``atomicrmw xchg seq_cst``): every write a thread made
+    before its exchange is visible to the thread whose exchange returns that value,
+    which is what bottom-up builders need to read the box a sibling's thread wrote.
+    ``array`` is a 1D integer array and ``index`` must be in range (no wraparound).
+    """
+    sig = array.dtype(array, index, array.dtype)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        array_type = signature.args[0]
+        view = context.make_array(array_type)(context, builder, args[0])
+        position = context.cast(builder, args[1], signature.args[1], types.intp)
+        pointer = cgutils.get_item_pointer(
+            context, builder, array_type, view, [position], wraparound=False
+        )
+        return builder.atomic_rmw("xchg", pointer, args[2], "seq_cst")
+
+    return sig, codegen

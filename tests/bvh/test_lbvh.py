@@ -1,4 +1,4 @@
-"""LBVH pieces: Morton codes, the parallel radix sort, Karras emission, depth bound."""
+"""LBVH pieces: Morton codes, the parallel radix sort, Karras and Apetrei emission, depth bound."""
 
 from __future__ import annotations
 
@@ -83,8 +83,45 @@ def test_63_bits_no_worse_than_30_bits_on_a_large_scene():
     assert sah[63] <= sah[30] * 1.05
 
 
+def _same_tree(a, b):
+    fields = ("node_lo", "node_hi", "node_first", "node_count", "prim_index")
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in fields)
+
+
+@pytest.mark.parametrize("bits", [30, 63])
+def test_apetrei_and_karras_emissions_build_the_same_tree(threads, bits):
+    # Both find the radix tree of the sorted codes, index bits breaking ties; the
+    # bottom-up pass must also refit and collapse exactly as the post-order refit does,
+    # with any number of threads. Duplicated centroids exercise the tie rule.
+    rng = np.random.default_rng(3)
+    soup = rng.random((3000, 3, 3)) * 10
+    soup[1000:1600] = soup[7]
+    soup[2000:2100] = soup[2000]
+    meshes = [_mesh(soup), rayaccel.scenes.get("cornell-box"), rayaccel.scenes.get("teapot")]
+    for mesh in meshes:
+        karras = rayaccel.build(mesh, "bvh2.lbvh", morton_bits=bits, emission="karras")
+        for n in (1, 2):
+            threads(n)
+            apetrei = rayaccel.build(mesh, "bvh2.lbvh", morton_bits=bits, emission="apetrei")
+            apetrei.structure.validate(mesh.triangles())
+            assert _same_tree(apetrei.structure, karras.structure)
+
+
+def test_apetrei_handles_one_and_two_references():
+    for n in (1, 2):
+        tri = np.zeros((n, 3, 3))
+        tri[:, 1, 0] = 1
+        tri[:, 2, 1] = 1
+        tri[:, :, 2] = np.arange(n)[:, None]
+        mesh = _mesh(tri)
+        bvh = rayaccel.build(mesh, "bvh2.lbvh", emission="apetrei", max_leaf_size=1).structure
+        bvh.validate(mesh.triangles())
+        assert bvh.n_nodes == 2 * n - 1
+
+
 def test_bad_options_name_the_option():
-    for bad, name in (({"morton_bits": 32}, "morton_bits"), ({"max_leaf_size": 0},
+    for bad, name in (({"morton_bits": 32}, "morton_bits"), ({"emission": "lauterbach"},
+                      "emission"), ({"max_leaf_size": 0},
                       "max_leaf_size"), ({"intersection_cost": 0}, "intersection_cost")):
         with pytest.raises(InvalidInputError, match=name):
             LbvhOptions(**bad)

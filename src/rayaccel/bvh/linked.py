@@ -336,6 +336,23 @@ def linked_to_canonical(
         np.float64(prim_cost),
         bool(collapse),
     )
+    return refitted_to_canonical(tree, root, n_prims, as_leaf, height, n_eff, n_prim)
+
+
+def refitted_to_canonical(
+    tree: LinkedTree,
+    root: int,
+    n_prims: int,
+    as_leaf: np.ndarray,
+    height: IntArray,
+    n_eff: IntArray,
+    n_prim: IntArray,
+) -> Bvh2:
+    """Emit the canonical :class:`Bvh2` of a refitted linked tree (passes 2 and 3).
+
+    The arrays are :func:`rayaccel.bvh.refit.refit_collapse`'s, or those of a builder
+    that refits and collapses on its own (the Apetrei emission of ``bvh2.lbvh``).
+    """
     lo, hi, first, count, prim = _emit_kernel(
         np.int32(root),
         tree.left,

@@ -134,7 +134,7 @@ def _collapse_node_py(
         cost[u] = split_cost
 
 
-_collapse_node = cpu_inline(_collapse_node_py)
+collapse_node = cpu_inline(_collapse_node_py)
 
 
 @cpu_kernel(parallel=True)
@@ -199,13 +199,13 @@ def refit_collapse(root, left, right, lo, hi, count, max_leaf, c_inner, c_prim, 
                 sp += 2
                 continue
             sp -= 1
-            _collapse_node(
+            collapse_node(
                 node, left, right, lo, hi, count, max_leaf, c_inner, c_prim, collapse,
                 as_leaf, height, n_eff, n_prim, cost,
             )  # fmt: skip
     # The top levels, children before parents.
     for i in range(top.shape[0] - 1, -1, -1):
-        _collapse_node(
+        collapse_node(
             top[i], left, right, lo, hi, count, max_leaf, c_inner, c_prim, collapse,
             as_leaf, height, n_eff, n_prim, cost,
         )  # fmt: skip
