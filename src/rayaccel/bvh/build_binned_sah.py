@@ -236,6 +236,51 @@ def _best_split(
 
 
 @cpu_inline
+def _pair_split(
+    refs, begin, cb_lo, scale, n_bins, count, node_area, trav_cost, isect_cost, child_box
+):
+    """:func:`_best_split`'s result for a node of two references, without the bins.
+
+    Two references fall into two bins or one on each axis; every plane between two
+    bins gives the same partition, so the sweep's answer is the first axis that
+    separates them, at the lower reference's bin, with the two references' own boxes
+    as child boxes. The bin indices and the cost are computed with the binning's and
+    the sweep's exact expressions, so the tree is the one binning builds. On the
+    kitchen (1.4M triangles) 544k of the 1.37M nodes hold two references.
+    """
+    inv_area = 1.0 / node_area if node_area > 0 else 0.0
+    u0 = np.uint64(begin)
+    u1 = np.uint64(begin + 1)
+    for a in range(3):
+        if scale[a] == 0:
+            continue
+        b0 = int((refs[u0, a] + refs[u0, 4 + a] - cb_lo[a]) * scale[a])
+        b1 = int((refs[u1, a] + refs[u1, 4 + a] - cb_lo[a]) * scale[a])
+        b0 = max(0, min(b0, n_bins - 1))
+        b1 = max(0, min(b1, n_bins - 1))
+        if b0 == b1:
+            continue
+        left = u0 if b0 < b1 else u1
+        right = u1 if b0 < b1 else u0
+        for k in range(3):
+            child_box[k] = refs[left, k]
+            child_box[3 + k] = refs[left, 4 + k]
+            child_box[6 + k] = refs[right, k]
+            child_box[9 + k] = refs[right, 4 + k]
+        n_left = np.int32(1)
+        n_r = count - n_left
+        area_left = _half_area(
+            child_box[0], child_box[1], child_box[2], child_box[3], child_box[4], child_box[5]
+        )
+        area_right = _half_area(
+            child_box[6], child_box[7], child_box[8], child_box[9], child_box[10], child_box[11]
+        )
+        cost = trav_cost + isect_cost * (area_left * n_left + area_right * n_r) * inv_area
+        return cost, a, min(b0, b1)
+    return np.inf, -1, -1
+
+
+@cpu_inline
 def _partition(
     refs, begin, end, axis, split_bin, cb_lo_axis, scale_axis, n_bins, left_cb, right_cb
 ):
@@ -385,22 +430,28 @@ def _build_subtree(
         # Small nodes use fewer bins: the per-bin sweep would dominate their cost.
         node_bins = node_bin_count(n_bins, count)
         if not forced_median and _bin_scales(cb, node_bins, scale):
-            _reset_bins(counts, bin_box, node_bins)
             for a in range(3):
                 cb[a] = cb[6 + a]
-            bin_prims(refs, lo_i, hi_i, cb, scale, node_bins, counts, bin_box)
-            cost, axis, split_bin = _best_split(
-                counts,
-                bin_box,
-                node_bins,
-                scale,
-                count,
-                node_area,
-                trav_cost,
-                isect_cost,
-                suffix,
-                child_box,
-            )
+            if count == 2:
+                cost, axis, split_bin = _pair_split(
+                    refs, lo_i, cb, scale, node_bins, count, node_area, trav_cost, isect_cost,
+                    child_box,
+                )  # fmt: skip
+            else:
+                _reset_bins(counts, bin_box, node_bins)
+                bin_prims(refs, lo_i, hi_i, cb, scale, node_bins, counts, bin_box)
+                cost, axis, split_bin = _best_split(
+                    counts,
+                    bin_box,
+                    node_bins,
+                    scale,
+                    count,
+                    node_area,
+                    trav_cost,
+                    isect_cost,
+                    suffix,
+                    child_box,
+                )
         # Leaf when splitting does not pay and the leaf is small enough.
         if count <= max_leaf and (axis < 0 or cost >= isect_cost * count):
             t_first[node] = lo_i
