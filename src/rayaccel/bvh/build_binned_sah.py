@@ -614,6 +614,26 @@ def _split_large(
 
 
 @cpu_kernel(parallel=True)
+def _split_level(
+    refs, task, left, cb_lo, counts, bin_box, usable, n_bins, max_leaf, trav_cost,
+    isect_cost, scale, t_lo, t_hi, t_first, t_count, out_cb, mid,
+):  # fmt: skip
+    """Split a level's large nodes concurrently (their reference ranges are disjoint).
+
+    Node ``i`` is ``task[i] = (begin, end, depth, node)`` with bins ``counts[i]``/
+    ``bin_box[i]`` (none when ``usable[i]`` is False); its children go to slots
+    ``left[i]`` and ``left[i] + 1``. ``mid[i]`` gets the partition point (-1: leaf).
+    """
+    for i in prange(task.shape[0]):
+        n_used_bins = n_bins if usable[i] else 0
+        mid[i] = _split_large(
+            refs, task[i, 0], task[i, 1], task[i, 2], task[i, 3], left[i], cb_lo[i],
+            counts[i, :, :n_used_bins], bin_box[i, :, :n_used_bins], n_bins, max_leaf,
+            trav_cost, isect_cost, scale[i], t_lo, t_hi, t_first, t_count, out_cb[i],
+        )  # fmt: skip
+
+
+@cpu_kernel(parallel=True)
 def _build_frontier(
     refs,
     task_begin,
@@ -702,55 +722,50 @@ def build_binned_sah(
     max_leaf = int(opt.max_leaf_size)
     trav, isect = float(opt.traversal_cost), float(opt.intersection_cost)
     n_chunks = max(1, 4 * numba.get_num_threads())
-    # Top phase: split large nodes with all threads binning; collect the frontier.
-    pending = [(0, n, 0, 0, box[6:12].copy())]
+    # Top phase, a level at a time: each large node is binned by all threads, then the
+    # level's nodes are partitioned concurrently, one per thread; smaller nodes go to
+    # the frontier. (Levels, not a work stack: the tree does not depend on the order.)
+    level = [(0, n, 0, 0, box[6:12].copy())]
     frontier: list[tuple[int, int, int, int, np.ndarray]] = []
     next_node = 1
-    scale = np.empty(3, dtype=np.float32)
-    out_cb = np.empty((2, 6), dtype=np.float32)
-    while pending:
-        begin, end, depth, node, cb = pending.pop()
-        count = end - begin
-        if count < opt.parallel_threshold:
-            frontier.append((begin, end, depth, node, cb))
-            continue
-        extent = cb[3:6] - cb[0:3]
-        with np.errstate(divide="ignore"):
-            scale[:] = np.where(extent > 0, np.float32(n_bins) * np.float32(0.99999) / extent, 0)
-        if (scale > 0).any():
-            counts, bin_box = _bin_parallel(
-                rows, begin, end, cb[0:3].copy(), scale, n_bins, n_chunks
-            )
-        else:
-            counts = np.zeros((3, 0), dtype=np.int32)
-            bin_box = np.zeros((3, 0, 8), dtype=np.float32)
-        mid = _split_large(
-            rows,
-            begin,
-            end,
-            depth,
-            node,
-            next_node,
-            cb[0:3].copy(),
-            counts,
-            bin_box,
-            n_bins,
-            max_leaf,
-            trav,
-            isect,
-            scale,
-            t_lo,
-            t_hi,
-            t_first,
-            t_count,
-            out_cb,
-        )
-        if mid < 0:
-            continue
-        left = next_node
-        next_node += 2
-        pending.append((mid, end, depth + 1, left + 1, out_cb[1].copy()))
-        pending.append((begin, mid, depth + 1, left, out_cb[0].copy()))
+    while level:
+        large = [task for task in level if task[1] - task[0] >= opt.parallel_threshold]
+        frontier.extend(task for task in level if task[1] - task[0] < opt.parallel_threshold)
+        if not large:
+            break
+        m = len(large)
+        counts = np.zeros((m, 3, n_bins), dtype=np.int32)
+        bin_box = np.zeros((m, 3, n_bins, 8), dtype=np.float32)
+        scale = np.zeros((m, 3), dtype=np.float32)
+        usable = np.zeros(m, dtype=np.bool_)
+        cb_lo = np.ascontiguousarray([task[4][0:3] for task in large], dtype=np.float32)
+        bins_span = np.float32(n_bins) * np.float32(0.99999)
+        for i, (begin, end, _, _, cb) in enumerate(large):
+            extent = cb[3:6] - cb[0:3]
+            with np.errstate(divide="ignore"):
+                scale[i] = np.where(extent > 0, bins_span / extent, 0)
+            usable[i] = (scale[i] > 0).any()
+            if usable[i]:
+                counts[i], bin_box[i] = _bin_parallel(
+                    rows, begin, end, cb_lo[i], scale[i], n_bins, n_chunks
+                )
+        # Two pool slots per node (a large node that stays a leaf wastes its two; its
+        # references, at least parallel_threshold >= 2 of them, need no slots below).
+        task = np.array([task[:4] for task in large], dtype=np.int32)
+        left = (next_node + 2 * np.arange(m)).astype(np.int32)
+        next_node += 2 * m
+        mid = np.empty(m, dtype=np.int32)
+        out_cb = np.empty((m, 2, 6), dtype=np.float32)
+        with numba.parallel_chunksize(1):
+            _split_level(
+                rows, task, left, cb_lo, counts, bin_box, usable, n_bins, max_leaf, trav,
+                isect, scale, t_lo, t_hi, t_first, t_count, out_cb, mid,
+            )  # fmt: skip
+        level = []
+        for i, (begin, end, depth, _) in enumerate(task.tolist()):
+            if mid[i] >= 0:
+                level.append((begin, int(mid[i]), depth + 1, int(left[i]), out_cb[i, 0].copy()))
+                level.append((int(mid[i]), end, depth + 1, int(left[i]) + 1, out_cb[i, 1].copy()))
     # Frontier phase: reserve 2m-2 pool slots per subtree of m primitives, build concurrently.
     if frontier:
         frontier.sort(key=lambda task: task[0])
