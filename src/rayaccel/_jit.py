@@ -130,3 +130,23 @@ def atomic_exchange(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
         return builder.atomic_rmw("xchg", pointer, args[2], "seq_cst")
 
     return sig, codegen
+
+
+@intrinsic
+def keep_branch(typingctx: Any) -> Any:
+    """Keep the branch this is called in a branch (an empty ``asm sideeffect``, no code).
+
+    LLVM turns a cheap two-way choice into a select (x86 ``cmov``), which makes the
+    value chosen wait for the condition. In a traversal the condition is a box test
+    and the value the next node, so every step would wait for the whole test; as a
+    branch, the CPU predicts it and starts fetching the next node at once. A side
+    effect cannot be speculated, so the choice stays a branch.
+    """
+    sig = types.void()
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        barrier = ir.InlineAsm(ir.FunctionType(ir.VoidType(), []), "", "", side_effect=True)
+        builder.call(barrier, [])
+        return context.get_dummy_value()
+
+    return sig, codegen

@@ -40,7 +40,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_kernel, prefetch_row
+from rayaccel._jit import cpu_kernel, keep_branch, prefetch_row
 from rayaccel._variant import register
 from rayaccel.bvh.layout import (
     PACKED_ROW_BYTES,
@@ -166,28 +166,39 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                             if mask == 3:
                                 # Both hit: the nearer (ties: child 0) is next, the other
                                 # is pushed with its entry distance.
-                                t0 = lane_t[0]
-                                t1 = lane_t[1]
-                                swap = t1 < t0
-                                near = 1 if swap else 0
                                 if sp == STACK_SIZE:
                                     overflow += 1
                                     break
-                                stack_ref[sp] = c0 if swap else c1
-                                stack_count[sp] = refs[node, COUNT_COLUMN + 1 - near]
-                                stack_t[sp] = t0 if swap else t1
-                                sp += 1
                                 if with_stats:
                                     n_bytes += _STACK_ENTRY_BYTES
-                                    peak = max(peak, sp)
-                                count = refs[node, COUNT_COLUMN + near]
-                                node = c1 if swap else c0
+                                    peak = max(peak, sp + 1)
+                                if lane_t[1] < lane_t[0]:
+                                    keep_branch()
+                                    stack_ref[sp] = c0
+                                    stack_count[sp] = refs[node, COUNT_COLUMN]
+                                    stack_t[sp] = lane_t[0]
+                                    sp += 1
+                                    count = refs[node, COUNT_COLUMN + 1]
+                                    node = c1
+                                    continue
+                                keep_branch()
+                                stack_ref[sp] = c1
+                                stack_count[sp] = refs[node, COUNT_COLUMN + 1]
+                                stack_t[sp] = lane_t[1]
+                                sp += 1
+                                count = refs[node, COUNT_COLUMN]
+                                node = c0
                                 continue
-                            if mask != 0:
+                            if mask == 1:
                                 # One hit: go there.
-                                near = mask >> 1
-                                count = refs[node, COUNT_COLUMN + near]
-                                node = c1 if near else c0
+                                keep_branch()
+                                count = refs[node, COUNT_COLUMN]
+                                node = c0
+                                continue
+                            if mask == 2:
+                                keep_branch()
+                                count = refs[node, COUNT_COLUMN + 1]
+                                node = c1
                                 continue
                         else:
                             # Leaf: test its triangles, shrinking t_hit.
