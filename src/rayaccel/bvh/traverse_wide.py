@@ -35,7 +35,7 @@ import numpy as np
 from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
-from rayaccel._jit import cpu_kernel, prefetch_row
+from rayaccel._jit import cpu_kernel, keep_branch, prefetch_row
 from rayaccel._variant import register
 from rayaccel.bvh.layout import (
     LEAF_BYTES,
@@ -156,6 +156,16 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool, width: int = 8) -
                             if with_stats:
                                 n_box += refs[node, count_col]
                                 n_bytes += row_bytes
+                            if mask != 0 and mask & (mask - 1) == 0:
+                                # One hit (the common case): go there, through a branch per
+                                # lane, so the CPU predicts the child and fetches it at once
+                                # instead of waiting for the test to compute its index.
+                                for j in range(width):
+                                    if mask == 1 << j:
+                                        keep_branch()
+                                        node = refs[node, ref_col + j]
+                                        break
+                                continue
                             if mask != 0:
                                 # The first hit lane; with one hit (the common case) go there.
                                 j = trailing_zeros(mask)
@@ -172,6 +182,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool, width: int = 8) -
                                     child = refs[node, ref_col + j]
                                     tj = lane_t[j]
                                     if tj < next_t:
+                                        keep_branch()
                                         child, next_node = next_node, child
                                         tj, next_t = next_t, tj
                                         k = sp
@@ -180,6 +191,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool, width: int = 8) -
                                             stack_t[k] = stack_t[k - 1]
                                             k -= 1
                                     else:
+                                        keep_branch()
                                         k = sp
                                         while k > sp - (n_hit - 1) and stack_t[k - 1] <= tj:
                                             stack_ref[k] = stack_ref[k - 1]
