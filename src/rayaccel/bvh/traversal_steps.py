@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from rayaccel._jit import cpu_inline
+from rayaccel._jit import cpu_inline, keep_branch
 from rayaccel.bvh.layout import MAX_DEPTH, STACK_SIZE
 from rayaccel.errors import TraversalOverflowError
 from rayaccel.kernels.aabb import culling_pad, ray_box_entry, ray_box_exit
@@ -120,10 +120,24 @@ def intersect_leaf_py(
     return t_hit, best_prim, best_u, best_v, last - first
 
 
+def pick_py(first, a, b):
+    """``a if first else b``, kept a branch (:func:`rayaccel._jit.keep_branch`).
+
+    For a traversal's next node: as a select it would wait for the box test that
+    decides it; as a branch the CPU predicts it and fetches the node at once.
+    """
+    if first:
+        keep_branch()
+        return a
+    keep_branch()
+    return b
+
+
 ray_prologue = cpu_inline(ray_prologue_py)
 box_entry = cpu_inline(box_entry_py)
 box_exit = cpu_inline(box_exit_py)
 intersect_leaf = cpu_inline(intersect_leaf_py)
+pick = cpu_inline(pick_py)
 
 
 def check_trail_depth(bvh: Any, cache: dict[str, Any] | None, key: str) -> None:

@@ -43,6 +43,7 @@ from rayaccel.bvh.traversal_steps import (
     box_entry,
     check_trail_depth,
     intersect_leaf,
+    pick,
     ray_prologue,
 )
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
@@ -132,7 +133,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                             bits <<= 1
                             if t0 < INF32 and t1 < INF32:
                                 bits |= 1
-                            node = c1 if t1 < t0 else c0
+                            node = pick(t1 < t0, c1, c0)
                             continue
                     else:
                         # Leaf: test its triangles, shrinking t_hit.

@@ -73,6 +73,7 @@ from rayaccel.bvh.traversal_steps import (
     box_exit,
     check_trail_depth,
     intersect_leaf,
+    pick,
     ray_prologue,
 )
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
@@ -337,7 +338,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                         mask |= 1
                             key = 2 * key + (1 if swap else 0)
                             prow = node
-                            node = c1 if swap else c0
+                            node = pick(swap, c1, c0)
                             continue
                     else:
                         # Leaf: test its triangles; a hit drops unreachable postponed nodes.

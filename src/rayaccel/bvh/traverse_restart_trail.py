@@ -59,6 +59,7 @@ from rayaccel.bvh.traversal_steps import (
     box_entry,
     check_trail_depth,
     intersect_leaf,
+    pick,
     ray_prologue,
 )
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
@@ -193,9 +194,9 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                 # Two children: the trail bit picks near (0) or far (1).
                                 pop = False
                                 if trail & level:
-                                    node = c0 if swap else c1
+                                    node = pick(swap, c0, c1)
                                 else:
-                                    node = near
+                                    node = pick(swap, c1, c0)
                                     if cap > 0:
                                         # Remember the far child; overflow drops the oldest.
                                         ss_ref[ss_top] = c0 if swap else c1
