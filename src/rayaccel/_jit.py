@@ -150,3 +150,29 @@ def keep_branch(typingctx: Any) -> Any:
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@intrinsic
+def next_up_float32(typingctx: Any, x: Any) -> Any:
+    """``np.nextafter(x, inf)`` for a float32, inline (numba calls a C function for it).
+
+    The bits of a float32 read as an int32 step to the next float up: +1 for a
+    positive value, -1 for a negative one; ±0 steps to the smallest subnormal, while
+    NaN and +inf stay themselves.
+    """
+    sig = types.float32(types.float32)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        value = args[0]
+        i32 = ir.IntType(32)
+        f32 = ir.FloatType()
+        bits = builder.bitcast(value, i32)
+        positive = builder.icmp_signed(">=", bits, i32(0))
+        stepped = builder.select(positive, builder.add(bits, i32(1)), builder.sub(bits, i32(1)))
+        is_zero = builder.fcmp_ordered("==", value, f32(0.0))
+        stepped = builder.bitcast(builder.select(is_zero, i32(1), stepped), f32)
+        is_nan = builder.fcmp_unordered("uno", value, value)
+        is_inf = builder.fcmp_ordered("==", value, f32(float("inf")))
+        return builder.select(builder.or_(is_nan, is_inf), value, stepped)
+
+    return sig, codegen

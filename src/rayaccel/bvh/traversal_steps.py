@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from rayaccel._jit import cpu_inline, keep_branch
+from rayaccel._jit import cpu_inline, keep_branch, next_up_float32
 from rayaccel.bvh.layout import MAX_DEPTH, STACK_SIZE
 from rayaccel.errors import TraversalOverflowError
 from rayaccel.kernels.aabb import culling_pad, ray_box_entry, ray_box_exit
@@ -48,7 +48,7 @@ def ray_prologue_py(origin, direction, tmin, tmax, r, root_box):
     dy = direction[r, 1]
     dz = direction[r, 2]
     t_lo = tmin[r]
-    t_hit = np.nextafter(tmax[r], INF32)
+    t_hit = next_up_float32(tmax[r])
     valid = (
         t_lo <= tmax[r]
         and not (dx == 0 and dy == 0 and dz == 0)
@@ -88,6 +88,18 @@ def box_entry_py(box, row, col, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, 
         box[row, col + nx], box[row, col + ny], box[row, col + nz],
         box[row, col + fx], box[row, col + fy], box[row, col + fz],
         lo, hi,
+    )  # fmt: skip
+
+
+def root_entry_py(root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, lo, hi):
+    """:func:`box_entry_py` of the root box, stored as a flat ``(6,)`` interleaved array.
+
+    (Reshaping it to one row inside a kernel costs numba a runtime call and a reference
+    count round trip per ray.)
+    """
+    return ray_box_entry(
+        ox, oy, oz, ix, iy, iz, root_box[nx], root_box[ny], root_box[nz],
+        root_box[fx], root_box[fy], root_box[fz], lo, hi,
     )  # fmt: skip
 
 
@@ -135,6 +147,7 @@ def pick_py(first, a, b):
 
 ray_prologue = cpu_inline(ray_prologue_py)
 box_entry = cpu_inline(box_entry_py)
+root_entry = cpu_inline(root_entry_py)
 box_exit = cpu_inline(box_exit_py)
 intersect_leaf = cpu_inline(intersect_leaf_py)
 pick = cpu_inline(pick_py)

@@ -44,7 +44,7 @@ from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh.layout import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.links import LINK_BYTES, linked_layout
-from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue
+from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue, root_entry
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -96,8 +96,8 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                 entry = INF32
                 if valid:
                     # The root box is tested once up front.
-                    entry = box_entry(
-                        bvh.root_box.reshape((1, 6)), 0, 0, ox, oy, oz, ix, iy, iz,
+                    entry = root_entry(
+                        bvh.root_box, ox, oy, oz, ix, iy, iz,
                         nx, ny, nz, fx, fy, fz, box_lo, box_hi,
                     )  # fmt: skip
                     if with_stats:

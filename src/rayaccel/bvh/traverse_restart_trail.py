@@ -61,6 +61,7 @@ from rayaccel.bvh.traversal_steps import (
     intersect_leaf,
     pick,
     ray_prologue,
+    root_entry,
 )
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
@@ -150,8 +151,8 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                 entry = INF32
                 if valid:
                     # The root box is tested once up front.
-                    entry = box_entry(
-                        bvh.root_box.reshape((1, 6)), 0, 0, ox, oy, oz, ix, iy, iz,
+                    entry = root_entry(
+                        bvh.root_box, ox, oy, oz, ix, iy, iz,
                         nx, ny, nz, fx, fy, fz, box_lo, box_hi,
                     )  # fmt: skip
                     if with_stats:

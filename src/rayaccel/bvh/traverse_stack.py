@@ -54,7 +54,7 @@ from rayaccel.bvh.layout import (
     pack_bvh2,
 )
 from rayaccel.bvh.pairs import COUNT_COLUMN, REF_COLUMN, PairsBvh2, pairs_layout
-from rayaccel.bvh.traversal_steps import box_entry, intersect_leaf, ray_prologue
+from rayaccel.bvh.traversal_steps import intersect_leaf, ray_prologue, root_entry
 from rayaccel.config import parallel_section
 from rayaccel.counters import Counter, counters_to_dict, empty_counters
 from rayaccel.errors import InvalidInputError, TraversalOverflowError
@@ -134,8 +134,8 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                     far_z = 2 * fz
                     sp = 0
                     # The root box is tested once up front.
-                    entry = box_entry(
-                        bvh.root_box.reshape((1, 6)), 0, 0, ox, oy, oz, ix, iy, iz,
+                    entry = root_entry(
+                        bvh.root_box, ox, oy, oz, ix, iy, iz,
                         nx, ny, nz, fx, fy, fz, box_lo, box_hi,
                     )  # fmt: skip
                     if with_stats:

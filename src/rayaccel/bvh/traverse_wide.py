@@ -46,7 +46,7 @@ from rayaccel.bvh.layout import (
     Bvh2,
     memoised_layout,
 )
-from rayaccel.bvh.traversal_steps import box_entry, intersect_leaf, ray_prologue
+from rayaccel.bvh.traversal_steps import intersect_leaf, ray_prologue, root_entry
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.bvh.wide import WIDTHS, WideBvh, count_column, ref_column, row_floats, wide_layout
 from rayaccel.counters import Counter
@@ -129,8 +129,8 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool, width: int = 8) -
                     near_z = width * (nz - 4) + 4 * width
                     far_z = 9 * width - near_z
                     sp = 0
-                    entry = box_entry(
-                        bvh.root_box.reshape((1, 6)), 0, 0, ox, oy, oz, ix, iy, iz,
+                    entry = root_entry(
+                        bvh.root_box, ox, oy, oz, ix, iy, iz,
                         nx, ny, nz, fx, fy, fz, box_lo, box_hi,
                     )  # fmt: skip
                     if with_stats:
