@@ -92,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"- {line}")
     print(
         f"- {args.width}x{args.height} primary rays, median and best of {args.repeats} runs "
-        f"after one warm-up; '× open3d' is Mrays/s divided by Open3D's on the same rays"
+        f"after one warm-up; '× open3d' is Mrays/s divided by Open3D's on the same rays, "
+        f"for rayaccel rows timed round-robin with Open3D's passes (and the stats variant's)"
     )
     for note in notes:
         print(f"- {note}")
