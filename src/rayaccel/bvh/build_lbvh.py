@@ -154,19 +154,26 @@ def _karras_kernel(codes, left, right):
         right[i] = n - 1 + gamma + 1 if hi_end == gamma + 1 else gamma + 1
 
 
+@cpu_inline
+def _leaf_row(k, order, prim_lo, prim_hi, left, right, lo, hi, first, count, n_inner):
+    """Fill leaf ``k``'s row (node ``n_inner + k``, reference ``order[k]``); return its id."""
+    node = n_inner + k
+    p = order[k]
+    for a in range(3):
+        lo[node, a] = prim_lo[p, a]
+        hi[node, a] = prim_hi[p, a]
+    left[node] = -1
+    right[node] = -1
+    first[node] = k
+    count[node] = 1
+    return node
+
+
 @cpu_kernel(parallel=True)
 def _leaf_rows(order, prim_lo, prim_hi, left, right, lo, hi, first, count, n_inner):
     """Fill the leaf rows (one primitive each, in sorted order) of the linked arrays."""
     for k in prange(order.shape[0]):
-        node = n_inner + k
-        p = order[k]
-        for a in range(3):
-            lo[node, a] = prim_lo[p, a]
-            hi[node, a] = prim_hi[p, a]
-        left[node] = -1
-        right[node] = -1
-        first[node] = k
-        count[node] = 1
+        _leaf_row(k, order, prim_lo, prim_hi, left, right, lo, hi, first, count, n_inner)
 
 
 @cpu_kernel(parallel=True)
@@ -206,15 +213,7 @@ def apetrei_refit_collapse(
     root = np.empty(1, dtype=np.int32)
     for k in prange(n):
         # The leaf row, then its cost and collapse data.
-        leaf = n_inner + k
-        p = order[k]
-        for axis in range(3):
-            lo[leaf, axis] = prim_lo[p, axis]
-            hi[leaf, axis] = prim_hi[p, axis]
-        left[leaf] = -1
-        right[leaf] = -1
-        first[leaf] = k
-        count[leaf] = 1
+        leaf = _leaf_row(k, order, prim_lo, prim_hi, left, right, lo, hi, first, count, n_inner)
         height[leaf] = 0
         collapse_node(
             leaf, left, right, lo, hi, count, max_leaf, c_inner, c_prim, True,

@@ -16,7 +16,11 @@ naming them arrives, before the box test, so the next fetch overlaps the test (a
 that prefetched only the chosen child, after the test, was 12–25% slower than the
 old kernel); a leaf child's triangle range sits in its
 parent's row, so entering a leaf reads no leaf table; the two boxes share vector
-instructions. Hits are bit-identical to the scalar test's.
+instructions; and the choice of the next child stays a branch
+(:func:`rayaccel._jit.keep_branch`): as the select LLVM would make of it, every step
+waited for the whole box test before it could even address the next row, while a
+predicted branch lets the CPU fetch it during the test (0.78–0.90× the time on the
+kitchen). Hits are bit-identical to the scalar test's.
 
 The kernel is produced by a factory over compile-time constants (STYLE §4.3):
 ``query`` (closest/any), ``with_stats`` (per-ray counters, pruned away in the plain
