@@ -281,6 +281,29 @@ def _pair_split(
 
 
 @cpu_inline
+def binned_split(
+    refs, begin, end, cb_lo, scale, n_bins, node_area, trav_cost, isect_cost, counts, bin_box,
+    suffix, child_box,
+):  # fmt: skip
+    """The best binned object split of ``refs[begin:end]``: ``(cost, axis, bin)``.
+
+    Bins the references (``counts``/``bin_box`` are scratch) and sweeps the bins
+    (:func:`_best_split`); a node of two references gets the same answer without bins
+    (:func:`_pair_split`). Shared by binned SAH and SBVH's object splits.
+    """
+    count = end - begin
+    if count == 2:
+        return _pair_split(
+            refs, begin, cb_lo, scale, n_bins, count, node_area, trav_cost, isect_cost, child_box
+        )
+    _reset_bins(counts, bin_box, n_bins)
+    bin_prims(refs, begin, end, cb_lo, scale, n_bins, counts, bin_box)
+    return _best_split(
+        counts, bin_box, n_bins, scale, count, node_area, trav_cost, isect_cost, suffix, child_box
+    )
+
+
+@cpu_inline
 def _partition(
     refs, begin, end, axis, split_bin, cb_lo_axis, scale_axis, n_bins, left_cb, right_cb
 ):
@@ -432,26 +455,10 @@ def _build_subtree(
         if not forced_median and _bin_scales(cb, node_bins, scale):
             for a in range(3):
                 cb[a] = cb[6 + a]
-            if count == 2:
-                cost, axis, split_bin = _pair_split(
-                    refs, lo_i, cb, scale, node_bins, count, node_area, trav_cost, isect_cost,
-                    child_box,
-                )  # fmt: skip
-            else:
-                _reset_bins(counts, bin_box, node_bins)
-                bin_prims(refs, lo_i, hi_i, cb, scale, node_bins, counts, bin_box)
-                cost, axis, split_bin = _best_split(
-                    counts,
-                    bin_box,
-                    node_bins,
-                    scale,
-                    count,
-                    node_area,
-                    trav_cost,
-                    isect_cost,
-                    suffix,
-                    child_box,
-                )
+            cost, axis, split_bin = binned_split(
+                refs, lo_i, hi_i, cb, scale, node_bins, node_area, trav_cost, isect_cost,
+                counts, bin_box, suffix, child_box,
+            )  # fmt: skip
         # Leaf when splitting does not pay and the leaf is small enough.
         if count <= max_leaf and (axis < 0 or cost >= isect_cost * count):
             t_first[node] = lo_i

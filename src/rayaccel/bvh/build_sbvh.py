@@ -48,12 +48,10 @@ from rayaccel._variant import register
 from rayaccel.bvh._build_common import depth_forces_median, triangle_ref_rows
 from rayaccel.bvh.build_binned_sah import (
     MAX_BINS,
-    _best_split,
     _bin_scales,
     _partition,
     _ref_range_bounds,
-    _reset_bins,
-    bin_prims,
+    binned_split,
     node_bin_count,
     ref_rows,
 )
@@ -288,22 +286,12 @@ def _build_sbvh_task(
         cost = np.inf
         node_bins = node_bin_count(n_bins, count)
         if not forced and _bin_scales(box, node_bins, scale):
-            _reset_bins(counts, bin_box, node_bins)
             for a in range(3):
                 box[a] = box[6 + a]
-            bin_prims(refs, lo_i, hi_i, box, scale, node_bins, counts, bin_box)
-            cost, axis, split_bin = _best_split(
-                counts,
-                bin_box,
-                node_bins,
-                scale,
-                count,
-                node_area,
-                trav_cost,
-                isect_cost,
-                suffix,
-                child_box,
-            )
+            cost, axis, split_bin = binned_split(
+                refs, lo_i, hi_i, box, scale, node_bins, node_area, trav_cost, isect_cost,
+                counts, bin_box, suffix, child_box,
+            )  # fmt: skip
             _ref_range_bounds(refs, lo_i, hi_i, box)
         # 2. Spatial split, only where the object split's children overlap enough.
         s_axis = -1
