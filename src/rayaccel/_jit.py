@@ -133,6 +133,28 @@ def atomic_exchange(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
 
 
 @intrinsic
+def atomic_fetch_add(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
+    """Add ``value`` to ``array[index]`` atomically and return the previous value.
+
+    Monotonic ordering (``atomicrmw add monotonic``): enough for a shared counter that
+    hands out work items, which is what :func:`rayaccel.bvh.traversal_steps` uses it
+    for. ``array`` is a 1D integer array and ``index`` must be in range.
+    """
+    sig = array.dtype(array, index, array.dtype)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        array_type = signature.args[0]
+        view = context.make_array(array_type)(context, builder, args[0])
+        position = context.cast(builder, args[1], signature.args[1], types.intp)
+        pointer = cgutils.get_item_pointer(
+            context, builder, array_type, view, [position], wraparound=False
+        )
+        return builder.atomic_rmw("add", pointer, args[2], "monotonic")
+
+    return sig, codegen
+
+
+@intrinsic
 def keep_branch(typingctx: Any) -> Any:
     """Keep the branch this is called in a branch (an empty ``asm sideeffect``, no code).
 

@@ -32,7 +32,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel._jit import atomic_fetch_add, cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import (
     compact_to_canonical,
@@ -623,21 +623,27 @@ def _split_large(
 @cpu_kernel(parallel=True)
 def _split_level(
     refs, task, left, cb_lo, counts, bin_box, usable, n_bins, max_leaf, trav_cost,
-    isect_cost, scale, t_lo, t_hi, t_first, t_count, out_cb, mid,
+    isect_cost, scale, t_lo, t_hi, t_first, t_count, out_cb, mid, n_threads,
 ):  # fmt: skip
     """Split a level's large nodes concurrently (their reference ranges are disjoint).
 
     Node ``i`` is ``task[i] = (begin, end, depth, node)`` with bins ``counts[i]``/
     ``bin_box[i]`` (none when ``usable[i]`` is False); its children go to slots
     ``left[i]`` and ``left[i] + 1``. ``mid[i]`` gets the partition point (-1: leaf).
+    ``n_threads`` workers take the nodes one at a time from a shared counter.
     """
-    for i in prange(task.shape[0]):
-        n_used_bins = n_bins if usable[i] else 0
-        mid[i] = _split_large(
-            refs, task[i, 0], task[i, 1], task[i, 2], task[i, 3], left[i], cb_lo[i],
-            counts[i, :, :n_used_bins], bin_box[i, :, :n_used_bins], n_bins, max_leaf,
-            trav_cost, isect_cost, scale[i], t_lo, t_hi, t_first, t_count, out_cb[i],
-        )  # fmt: skip
+    next_task = np.zeros(1, dtype=np.int64)
+    for _worker in prange(max(1, min(n_threads, task.shape[0]))):
+        while True:
+            i = atomic_fetch_add(next_task, 0, 1)
+            if i >= task.shape[0]:
+                break
+            n_used_bins = n_bins if usable[i] else 0
+            mid[i] = _split_large(
+                refs, task[i, 0], task[i, 1], task[i, 2], task[i, 3], left[i], cb_lo[i],
+                counts[i, :, :n_used_bins], bin_box[i, :, :n_used_bins], n_bins, max_leaf,
+                trav_cost, isect_cost, scale[i], t_lo, t_hi, t_first, t_count, out_cb[i],
+            )  # fmt: skip
 
 
 @cpu_kernel(parallel=True)
@@ -658,33 +664,43 @@ def _build_frontier(
     t_first,
     t_count,
     used,
+    n_threads,
 ):
-    """Build every frontier subtree concurrently, each into its reserved node block."""
-    for i in prange(task_begin.shape[0]):
-        box0 = np.empty(12, dtype=np.float32)
-        node = task_node[i]
-        for k in range(3):
-            box0[k] = t_lo[node, k]
-            box0[3 + k] = t_hi[node, k]
-        for k in range(6):
-            box0[6 + k] = task_cb[i, k]
-        used[i] = _build_subtree(
-            refs,
-            task_begin[i],
-            task_end[i],
-            task_depth[i],
-            node,
-            task_base[i],
-            box0,
-            n_bins,
-            max_leaf,
-            trav_cost,
-            isect_cost,
-            t_lo,
-            t_hi,
-            t_first,
-            t_count,
-        )
+    """Build every frontier subtree concurrently, each into its reserved node block.
+
+    ``n_threads`` workers take the subtrees one at a time, in the given order, from a
+    shared counter (numba's OpenMP layer would hand each thread a fixed half).
+    """
+    next_task = np.zeros(1, dtype=np.int64)
+    for _worker in prange(max(1, min(n_threads, task_begin.shape[0]))):
+        while True:
+            i = atomic_fetch_add(next_task, 0, 1)
+            if i >= task_begin.shape[0]:
+                break
+            box0 = np.empty(12, dtype=np.float32)
+            node = task_node[i]
+            for k in range(3):
+                box0[k] = t_lo[node, k]
+                box0[3 + k] = t_hi[node, k]
+            for k in range(6):
+                box0[6 + k] = task_cb[i, k]
+            used[i] = _build_subtree(
+                refs,
+                task_begin[i],
+                task_end[i],
+                task_depth[i],
+                node,
+                task_base[i],
+                box0,
+                n_bins,
+                max_leaf,
+                trav_cost,
+                isect_cost,
+                t_lo,
+                t_hi,
+                t_first,
+                t_count,
+            )
 
 
 @register(
@@ -763,11 +779,10 @@ def build_binned_sah(
         next_node += 2 * m
         mid = np.empty(m, dtype=np.int32)
         out_cb = np.empty((m, 2, 6), dtype=np.float32)
-        with numba.parallel_chunksize(1):
-            _split_level(
-                rows, task, left, cb_lo, counts, bin_box, usable, n_bins, max_leaf, trav,
-                isect, scale, t_lo, t_hi, t_first, t_count, out_cb, mid,
-            )  # fmt: skip
+        _split_level(
+            rows, task, left, cb_lo, counts, bin_box, usable, n_bins, max_leaf, trav,
+            isect, scale, t_lo, t_hi, t_first, t_count, out_cb, mid, numba.get_num_threads(),
+        )  # fmt: skip
         level = []
         for i, (begin, end, depth, _) in enumerate(task.tolist()):
             if mid[i] >= 0:
@@ -789,25 +804,25 @@ def build_binned_sah(
         order = np.argsort(-(task_end - task_begin), kind="stable")
         task_begin, task_end, task_depth = task_begin[order], task_end[order], task_depth[order]
         task_node, task_base, task_cb = task_node[order], task_base[order], task_cb[order]
-        with numba.parallel_chunksize(1):
-            _build_frontier(
-                rows,
-                task_begin,
-                task_end,
-                task_depth,
-                task_node,
-                task_base,
-                task_cb,
-                n_bins,
-                max_leaf,
-                trav,
-                isect,
-                t_lo,
-                t_hi,
-                t_first,
-                t_count,
-                used,
-            )
+        _build_frontier(
+            rows,
+            task_begin,
+            task_end,
+            task_depth,
+            task_node,
+            task_base,
+            task_cb,
+            n_bins,
+            max_leaf,
+            trav,
+            isect,
+            t_lo,
+            t_hi,
+            t_first,
+            t_count,
+            used,
+            numba.get_num_threads(),
+        )
         next_node = pool_end
     prim_index = np.ascontiguousarray(rows.view(np.int32)[:, 3])
     return compact_to_canonical(

@@ -43,7 +43,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel._jit import atomic_fetch_add, cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh._build_common import depth_forces_median, triangle_ref_rows
 from rayaccel.bvh.build_binned_sah import (
@@ -562,35 +562,45 @@ def _build_frontier(
     right_of,
     t_first,
     t_count,
+    n_threads,
 ):
-    """Build every frontier subtree concurrently into its reserved blocks."""
-    for i in prange(tasks.shape[0]):
-        no_tasks = np.empty((1, 5), dtype=np.int32)
-        # int64 arguments, as in the serial top-phase call: one compiled signature.
-        _build_sbvh_task(
-            refs,
-            tri,
-            np.int64(tasks[i, 1]),
-            np.int64(tasks[i, 2]),
-            np.int64(tasks[i, 3]),
-            np.int64(tasks[i, 4]),
-            np.int64(tasks[i, 0]),
-            np.int64(task_base[i]),
-            np.int64(0),
-            root_area,
-            alpha,
-            n_bins,
-            n_sbins,
-            spatial_depth,
-            max_leaf,
-            trav_cost,
-            isect_cost,
-            left_of,
-            right_of,
-            t_first,
-            t_count,
-            no_tasks,
-        )
+    """Build every frontier subtree concurrently into its reserved blocks.
+
+    ``n_threads`` workers take the subtrees one at a time, in the given order, from a
+    shared counter (numba's OpenMP layer would hand each thread a fixed half).
+    """
+    next_task = np.zeros(1, dtype=np.int64)
+    for _worker in prange(max(1, min(n_threads, tasks.shape[0]))):
+        while True:
+            i = atomic_fetch_add(next_task, 0, 1)
+            if i >= tasks.shape[0]:
+                break
+            no_tasks = np.empty((1, 5), dtype=np.int32)
+            # int64 arguments, as in the serial top-phase call: one compiled signature.
+            _build_sbvh_task(
+                refs,
+                tri,
+                np.int64(tasks[i, 1]),
+                np.int64(tasks[i, 2]),
+                np.int64(tasks[i, 3]),
+                np.int64(tasks[i, 4]),
+                np.int64(tasks[i, 0]),
+                np.int64(task_base[i]),
+                np.int64(0),
+                root_area,
+                alpha,
+                n_bins,
+                n_sbins,
+                spatial_depth,
+                max_leaf,
+                trav_cost,
+                isect_cost,
+                left_of,
+                right_of,
+                t_first,
+                t_count,
+                no_tasks,
+            )
 
 
 @cpu_kernel(parallel=True)
@@ -686,11 +696,11 @@ def build_sbvh(
             for x, fill in ((left_of, -1), (right_of, -1), (t_first, 0), (t_count, -1))
         )
         order = np.argsort(-(tasks[:, 2] - tasks[:, 1]), kind="stable")
-        with numba.parallel_chunksize(1):
-            _build_frontier(
-                rows, tri, np.ascontiguousarray(tasks[order]), task_base[order], *args,
-                left_of, right_of, t_first, t_count,
-            )  # fmt: skip
+        # Largest subtrees first, one at a time, so no thread idles at the end.
+        _build_frontier(
+            rows, tri, np.ascontiguousarray(tasks[order]), task_base[order], *args,
+            left_of, right_of, t_first, t_count, numba.get_num_threads(),
+        )  # fmt: skip
     lo = np.zeros((next_node, 3), dtype=np.float32)
     hi = np.zeros((next_node, 3), dtype=np.float32)
     _leaf_boxes(rows, left_of, t_first, t_count, lo, hi, next_node)

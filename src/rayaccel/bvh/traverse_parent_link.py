@@ -40,11 +40,18 @@ from typing import Any
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import atomic_fetch_add, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh.layout import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.links import LINK_BYTES, linked_layout
-from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue, root_entry
+from rayaccel.bvh.traversal_steps import (
+    INF32,
+    box_entry,
+    intersect_leaf,
+    ray_prologue,
+    root_entry,
+    worker_count,
+)
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -68,147 +75,156 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
     """Return the compiled parent-link traversal for one (query, with_stats, parallel) variant."""
 
     @cpu_kernel(parallel=parallel)
-    def kernel(bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters):
+    def kernel(
+        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
+    ):
         """Trace every ray over ``bvh`` (LinkedArrays) with the three-state machine; return 0."""
         _ = (query, with_stats, parallel)
         n_rays = origin.shape[0]
         n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
         box = bvh.inner_box
         refs = bvh.inner_ref
-        for chunk in prange(n_chunks):
-            for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                n_steps = 0
-                n_nodes = 0
-                n_box = 0
-                n_prim = 0
-                n_up = 0
-                n_bytes = 0
-                (
-                    valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                best_prim = -1
-                best_u = ZERO32
-                best_v = ZERO32
-                box_lo = t_lo - pad
-                box_hi = t_hit + pad
-                root = bvh.root_ref[0]
-                entry = INF32
-                if valid:
-                    # The root box is tested once up front.
-                    entry = root_entry(
-                        bvh.root_box, ox, oy, oz, ix, iy, iz,
-                        nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                    )  # fmt: skip
-                    if with_stats:
-                        n_box += 1
-                if entry < INF32 and root < 0:
-                    # A single-leaf tree.
-                    first = bvh.leaf_first[~root]
-                    last = first + bvh.leaf_count[~root]
-                    t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                        bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                        Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, query == QUERY_ANY,
-                    )  # fmt: skip
-                    if with_stats:
-                        n_steps += 1
-                        n_nodes += 1
-                        n_prim += tested
-                        n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                elif entry < INF32:
-                    row = root
-                    state = DOWN
-                    slot = 0
-                    near = 0
-                    t0 = INF32
-                    t1 = INF32
-                    while True:
-                        if state != TRY:
-                            # At a row (entered from above, or back from a child): the
-                            # children's entry distances give the near child (ties: 0).
-                            t0 = box_entry(
-                                box, row, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                box_lo, INF32,
-                            )  # fmt: skip
-                            t1 = box_entry(
-                                box, row, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                box_lo, INF32,
-                            )  # fmt: skip
-                            near = 1 if t1 < t0 else 0
-                            if with_stats:
-                                n_steps += 1
-                                n_box += 2
-                                n_bytes += PACKED_ROW_BYTES
+        # Workers take chunks of rays from a shared counter (traversal_steps.worker_count).
+        n_workers = worker_count(n_chunks, n_threads, parallel)
+        next_chunk = np.zeros(1, dtype=np.int64)
+        for _worker in prange(n_workers):
+            while True:
+                chunk = atomic_fetch_add(next_chunk, 0, 1)
+                if chunk >= n_chunks:
+                    break
+                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
+                    n_steps = 0
+                    n_nodes = 0
+                    n_box = 0
+                    n_prim = 0
+                    n_up = 0
+                    n_bytes = 0
+                    (
+                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+                    best_prim = -1
+                    best_u = ZERO32
+                    best_v = ZERO32
+                    box_lo = t_lo - pad
+                    box_hi = t_hit + pad
+                    root = bvh.root_ref[0]
+                    entry = INF32
+                    if valid:
+                        # The root box is tested once up front.
+                        entry = root_entry(
+                            bvh.root_box, ox, oy, oz, ix, iy, iz,
+                            nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+                        )  # fmt: skip
+                        if with_stats:
+                            n_box += 1
+                    if entry < INF32 and root < 0:
+                        # A single-leaf tree.
+                        first = bvh.leaf_first[~root]
+                        last = first + bvh.leaf_count[~root]
+                        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                            bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                            Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, query == QUERY_ANY,
+                        )  # fmt: skip
+                        if with_stats:
+                            n_steps += 1
+                            n_nodes += 1
+                            n_prim += tested
+                            n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                    elif entry < INF32:
+                        row = root
+                        state = DOWN
+                        slot = 0
+                        near = 0
+                        t0 = INF32
+                        t1 = INF32
+                        while True:
+                            if state != TRY:
+                                # At a row (entered from above, or back from a child): the
+                                # children's entry distances give the near child (ties: 0).
+                                t0 = box_entry(
+                                    box, row, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                                    box_lo, INF32,
+                                )  # fmt: skip
+                                t1 = box_entry(
+                                    box, row, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                                    box_lo, INF32,
+                                )  # fmt: skip
+                                near = 1 if t1 < t0 else 0
+                                if with_stats:
+                                    n_steps += 1
+                                    n_box += 2
+                                    n_bytes += PACKED_ROW_BYTES
+                                    if state == DOWN:
+                                        n_nodes += 1
+                                    else:
+                                        n_up += 1
                                 if state == DOWN:
-                                    n_nodes += 1
+                                    # From the parent: try the near child first.
+                                    slot = near
+                                    state = TRY
+                                elif slot == near:
+                                    # From the near child: its sibling is next.
+                                    slot = 1 - near
+                                    state = TRY
                                 else:
-                                    n_up += 1
-                            if state == DOWN:
-                                # From the parent: try the near child first.
-                                slot = near
-                                state = TRY
-                            elif slot == near:
-                                # From the near child: its sibling is next.
+                                    # From the far child: this row is finished, climb.
+                                    if row == root:
+                                        break
+                                    up = bvh.row_up[row]
+                                    row = up >> 1
+                                    slot = up & 1
+                                    if with_stats:
+                                        n_bytes += LINK_BYTES
+                                    continue
+                            # Try child `slot`: enter it if its box is hit within [tmin, t_hit].
+                            t = t0 if slot == 0 else t1
+                            if t < INF32 and t <= box_hi:
+                                child = refs[row, 12 + slot]
+                                if child >= 0:
+                                    row = child
+                                    state = DOWN
+                                    continue
+                                # Leaf: test its triangles, shrinking t_hit.
+                                first = bvh.leaf_first[~child]
+                                last = first + bvh.leaf_count[~child]
+                                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                                    query == QUERY_ANY,
+                                )  # fmt: skip
+                                box_hi = t_hit + pad
+                                if with_stats:
+                                    n_steps += 1
+                                    n_nodes += 1
+                                    n_prim += tested
+                                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                                if query == QUERY_ANY and best_prim >= 0:
+                                    break
+                            # The child is finished: hand over to the sibling, or climb.
+                            if slot == near:
                                 slot = 1 - near
-                                state = TRY
                             else:
-                                # From the far child: this row is finished, climb.
                                 if row == root:
                                     break
                                 up = bvh.row_up[row]
                                 row = up >> 1
                                 slot = up & 1
+                                state = UP
                                 if with_stats:
                                     n_bytes += LINK_BYTES
-                                continue
-                        # Try child `slot`: enter it if its box is hit within [tmin, t_hit].
-                        t = t0 if slot == 0 else t1
-                        if t < INF32 and t <= box_hi:
-                            child = refs[row, 12 + slot]
-                            if child >= 0:
-                                row = child
-                                state = DOWN
-                                continue
-                            # Leaf: test its triangles, shrinking t_hit.
-                            first = bvh.leaf_first[~child]
-                            last = first + bvh.leaf_count[~child]
-                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                                query == QUERY_ANY,
-                            )  # fmt: skip
-                            box_hi = t_hit + pad
-                            if with_stats:
-                                n_steps += 1
-                                n_nodes += 1
-                                n_prim += tested
-                                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                            if query == QUERY_ANY and best_prim >= 0:
-                                break
-                        # The child is finished: hand over to the sibling, or climb.
-                        if slot == near:
-                            slot = 1 - near
-                        else:
-                            if row == root:
-                                break
-                            up = bvh.row_up[row]
-                            row = up >> 1
-                            slot = up & 1
-                            state = UP
-                            if with_stats:
-                                n_bytes += LINK_BYTES
-                if best_prim >= 0:
-                    hit_t[r] = t_hit
-                    hit_prim[r] = best_prim
-                    hit_u[r] = best_u
-                    hit_v[r] = best_v
-                if with_stats:
-                    counters[r, Counter.STEPS] = n_steps
-                    counters[r, Counter.NODES] = n_nodes
-                    counters[r, Counter.BOX_TESTS] = n_box
-                    counters[r, Counter.PRIM_TESTS] = n_prim
-                    counters[r, Counter.BACKTRACKS] = n_up
-                    counters[r, Counter.BYTES] = n_bytes
+                    if best_prim >= 0:
+                        hit_t[r] = t_hit
+                        hit_prim[r] = best_prim
+                        hit_u[r] = best_u
+                        hit_v[r] = best_v
+                    if with_stats:
+                        counters[r, Counter.STEPS] = n_steps
+                        counters[r, Counter.NODES] = n_nodes
+                        counters[r, Counter.BOX_TESTS] = n_box
+                        counters[r, Counter.PRIM_TESTS] = n_prim
+                        counters[r, Counter.BACKTRACKS] = n_up
+                        counters[r, Counter.BYTES] = n_bytes
         return 0
 
     return kernel

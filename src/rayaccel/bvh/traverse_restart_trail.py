@@ -43,7 +43,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_kernel, prefetch_row
+from rayaccel._jit import atomic_fetch_add, cpu_kernel, prefetch_row
 from rayaccel._variant import register
 from rayaccel.bvh.layout import (
     LEAF_BYTES,
@@ -62,6 +62,7 @@ from rayaccel.bvh.traversal_steps import (
     pick,
     ray_prologue,
     root_entry,
+    worker_count,
 )
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
@@ -119,7 +120,9 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
     """Return the compiled restart-trail traversal for one (query, with_stats, parallel) variant."""
 
     @cpu_kernel(parallel=parallel)
-    def kernel(bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters):
+    def kernel(
+        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
+    ):
         """Trace every ray over ``bvh`` (RestartArrays) with a restart trail; return 0."""
         _ = (query, with_stats, parallel)
         cap = bvh.short_stack
@@ -127,155 +130,162 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
         box = bvh.inner_box
         refs = bvh.inner_ref
-        for chunk in prange(n_chunks):
+        # Workers take chunks of rays from a shared counter (traversal_steps.worker_count).
+        n_workers = worker_count(n_chunks, n_threads, parallel)
+        next_chunk = np.zeros(1, dtype=np.int64)
+        for _worker in prange(n_workers):
             ss_ref = np.empty(max(cap, 1), dtype=np.int32)
             ss_t = np.empty(max(cap, 1), dtype=np.float32)
             ss_level = np.empty(max(cap, 1), dtype=np.int64)
-            for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                n_steps = 0
-                n_box = 0
-                n_prim = 0
-                n_bytes = 0
-                n_restarts = 0
-                n_pops = 0
-                peak = 0
-                (
-                    valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                best_prim = -1
-                best_u = ZERO32
-                best_v = ZERO32
-                box_lo = t_lo - pad
-                box_hi = t_hit + pad
-                entry = INF32
-                if valid:
-                    # The root box is tested once up front.
-                    entry = root_entry(
-                        bvh.root_box, ox, oy, oz, ix, iy, iz,
-                        nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                    )  # fmt: skip
-                    if with_stats:
-                        n_box += 1
-                node = bvh.root_ref[0]
-                trail = np.int64(0)
-                level = ROOT_LEVEL
-                pop_level = np.int64(0)
-                ss_n = 0
-                ss_top = 0
-                done = entry == INF32
-                while not done:
-                    if with_stats:
-                        n_steps += 1
-                    pop = True
-                    if node >= 0:
-                        # Inner row: test both children from the 64-byte row.
-                        c0 = refs[node, 12]
-                        c1 = refs[node, 13]
-                        if c0 >= 0:
-                            prefetch_row(box, c0)
-                        if c1 >= 0:
-                            prefetch_row(box, c1)
-                        t0 = box_entry(
-                            box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                            box_lo, box_hi,
-                        )  # fmt: skip
-                        t1 = box_entry(
-                            box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                            box_lo, box_hi,
+            while True:
+                chunk = atomic_fetch_add(next_chunk, 0, 1)
+                if chunk >= n_chunks:
+                    break
+                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
+                    n_steps = 0
+                    n_box = 0
+                    n_prim = 0
+                    n_bytes = 0
+                    n_restarts = 0
+                    n_pops = 0
+                    peak = 0
+                    (
+                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+                    best_prim = -1
+                    best_u = ZERO32
+                    best_v = ZERO32
+                    box_lo = t_lo - pad
+                    box_hi = t_hit + pad
+                    entry = INF32
+                    if valid:
+                        # The root box is tested once up front.
+                        entry = root_entry(
+                            bvh.root_box, ox, oy, oz, ix, iy, iz,
+                            nx, ny, nz, fx, fy, fz, box_lo, box_hi,
                         )  # fmt: skip
                         if with_stats:
-                            n_box += 2
-                            n_bytes += PACKED_ROW_BYTES
-                        if t0 < INF32 or t1 < INF32:
-                            level >>= 1
-                            swap = t1 < t0
-                            near = c1 if swap else c0
-                            if t0 < INF32 and t1 < INF32:
-                                # Two children: the trail bit picks near (0) or far (1).
-                                pop = False
-                                if trail & level:
-                                    node = pick(swap, c0, c1)
-                                else:
-                                    node = pick(swap, c1, c0)
-                                    if cap > 0:
-                                        # Remember the far child; overflow drops the oldest.
-                                        ss_ref[ss_top] = c0 if swap else c1
-                                        ss_t[ss_top] = t0 if swap else t1
-                                        ss_level[ss_top] = level
-                                        ss_top = ss_top + 1 if ss_top + 1 < cap else 0
-                                        ss_n = min(ss_n + 1, cap)
-                                        if with_stats:
-                                            n_bytes += STACK_ENTRY_BYTES
-                                            peak = max(peak, ss_n)
-                            elif level != pop_level:
-                                # One child: mark the level finished on the way down.
-                                pop = False
-                                trail |= level
-                                node = near
-                            # Else the far child of the level just popped is culled now
-                            # (the ray got shorter): pop instead of re-entering the near.
-                    else:
-                        # Leaf: test its triangles, shrinking t_hit.
-                        first = bvh.leaf_first[~node]
-                        last = first + bvh.leaf_count[~node]
-                        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                            bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                            Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                            query == QUERY_ANY,
-                        )  # fmt: skip
-                        box_hi = t_hit + pad
+                            n_box += 1
+                    node = bvh.root_ref[0]
+                    trail = np.int64(0)
+                    level = ROOT_LEVEL
+                    pop_level = np.int64(0)
+                    ss_n = 0
+                    ss_top = 0
+                    done = entry == INF32
+                    while not done:
                         if with_stats:
-                            n_prim += tested
-                            n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                        if query == QUERY_ANY and best_prim >= 0:
-                            break
-                    if not pop:
-                        continue
-                    # Pop: advance the trail to the deepest unfinished level; continue from
-                    # the short stack if it has that level's far child, else restart.
-                    while True:
-                        if with_stats:
-                            n_pops += 1
-                        trail &= -level
-                        trail += level
-                        if trail & ROOT_LEVEL:
-                            done = True
-                            break
-                        level = trail & -trail
-                        pop_level = level
-                        if ss_n > 0:
-                            ss_top = ss_top - 1 if ss_top > 0 else cap - 1
-                            ss_n -= 1
+                            n_steps += 1
+                        pop = True
+                        if node >= 0:
+                            # Inner row: test both children from the 64-byte row.
+                            c0 = refs[node, 12]
+                            c1 = refs[node, 13]
+                            if c0 >= 0:
+                                prefetch_row(box, c0)
+                            if c1 >= 0:
+                                prefetch_row(box, c1)
+                            t0 = box_entry(
+                                box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                                box_lo, box_hi,
+                            )  # fmt: skip
+                            t1 = box_entry(
+                                box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                                box_lo, box_hi,
+                            )  # fmt: skip
                             if with_stats:
-                                n_bytes += STACK_ENTRY_BYTES
-                            if ss_level[ss_top] == level:
-                                if ss_t[ss_top] > box_hi:
-                                    # Culled by a nearer hit: that level is finished too.
-                                    continue
-                                node = ss_ref[ss_top]
+                                n_box += 2
+                                n_bytes += PACKED_ROW_BYTES
+                            if t0 < INF32 or t1 < INF32:
+                                level >>= 1
+                                swap = t1 < t0
+                                near = c1 if swap else c0
+                                if t0 < INF32 and t1 < INF32:
+                                    # Two children: the trail bit picks near (0) or far (1).
+                                    pop = False
+                                    if trail & level:
+                                        node = pick(swap, c0, c1)
+                                    else:
+                                        node = pick(swap, c1, c0)
+                                        if cap > 0:
+                                            # Remember the far child; overflow drops the oldest.
+                                            ss_ref[ss_top] = c0 if swap else c1
+                                            ss_t[ss_top] = t0 if swap else t1
+                                            ss_level[ss_top] = level
+                                            ss_top = ss_top + 1 if ss_top + 1 < cap else 0
+                                            ss_n = min(ss_n + 1, cap)
+                                            if with_stats:
+                                                n_bytes += STACK_ENTRY_BYTES
+                                                peak = max(peak, ss_n)
+                                elif level != pop_level:
+                                    # One child: mark the level finished on the way down.
+                                    pop = False
+                                    trail |= level
+                                    node = near
+                                # Else the far child of the level just popped is culled now
+                                # (the ray got shorter): pop instead of re-entering the near.
+                        else:
+                            # Leaf: test its triangles, shrinking t_hit.
+                            first = bvh.leaf_first[~node]
+                            last = first + bvh.leaf_count[~node]
+                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                                query == QUERY_ANY,
+                            )  # fmt: skip
+                            box_hi = t_hit + pad
+                            if with_stats:
+                                n_prim += tested
+                                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                            if query == QUERY_ANY and best_prim >= 0:
                                 break
-                            ss_n = 0
-                        # Restart from the root, following the trail.
-                        node = bvh.root_ref[0]
-                        level = ROOT_LEVEL
-                        if with_stats:
-                            n_restarts += 1
-                        break
-                if best_prim >= 0:
-                    hit_t[r] = t_hit
-                    hit_prim[r] = best_prim
-                    hit_u[r] = best_u
-                    hit_v[r] = best_v
-                if with_stats:
-                    counters[r, Counter.STEPS] = n_steps
-                    counters[r, Counter.NODES] = n_steps
-                    counters[r, Counter.BOX_TESTS] = n_box
-                    counters[r, Counter.PRIM_TESTS] = n_prim
-                    counters[r, Counter.STACK_PEAK] = peak
-                    counters[r, Counter.RESTARTS] = n_restarts
-                    counters[r, Counter.BACKTRACKS] = n_pops
-                    counters[r, Counter.BYTES] = n_bytes
+                        if not pop:
+                            continue
+                        # Pop: advance the trail to the deepest unfinished level; continue from
+                        # the short stack if it has that level's far child, else restart.
+                        while True:
+                            if with_stats:
+                                n_pops += 1
+                            trail &= -level
+                            trail += level
+                            if trail & ROOT_LEVEL:
+                                done = True
+                                break
+                            level = trail & -trail
+                            pop_level = level
+                            if ss_n > 0:
+                                ss_top = ss_top - 1 if ss_top > 0 else cap - 1
+                                ss_n -= 1
+                                if with_stats:
+                                    n_bytes += STACK_ENTRY_BYTES
+                                if ss_level[ss_top] == level:
+                                    if ss_t[ss_top] > box_hi:
+                                        # Culled by a nearer hit: that level is finished too.
+                                        continue
+                                    node = ss_ref[ss_top]
+                                    break
+                                ss_n = 0
+                            # Restart from the root, following the trail.
+                            node = bvh.root_ref[0]
+                            level = ROOT_LEVEL
+                            if with_stats:
+                                n_restarts += 1
+                            break
+                    if best_prim >= 0:
+                        hit_t[r] = t_hit
+                        hit_prim[r] = best_prim
+                        hit_u[r] = best_u
+                        hit_v[r] = best_v
+                    if with_stats:
+                        counters[r, Counter.STEPS] = n_steps
+                        counters[r, Counter.NODES] = n_steps
+                        counters[r, Counter.BOX_TESTS] = n_box
+                        counters[r, Counter.PRIM_TESTS] = n_prim
+                        counters[r, Counter.STACK_PEAK] = peak
+                        counters[r, Counter.RESTARTS] = n_restarts
+                        counters[r, Counter.BACKTRACKS] = n_pops
+                        counters[r, Counter.BYTES] = n_bytes
         return 0
 
     return kernel

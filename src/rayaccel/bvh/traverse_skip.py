@@ -34,11 +34,17 @@ from typing import Any
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import atomic_fetch_add, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh.layout import LEAF_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.links import SKIP_ROW_BYTES, skip_layout
-from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue
+from rayaccel.bvh.traversal_steps import (
+    INF32,
+    box_entry,
+    intersect_leaf,
+    ray_prologue,
+    worker_count,
+)
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -58,7 +64,9 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
     """Return the compiled skip-pointer traversal for one (query, with_stats, parallel) variant."""
 
     @cpu_kernel(parallel=parallel)
-    def kernel(bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters):
+    def kernel(
+        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
+    ):
         """Walk the pre-order rows of ``bvh`` (SkipArrays) for every ray; return 0."""
         _ = (query, with_stats, parallel)
         n_rays = origin.shape[0]
@@ -66,64 +74,71 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         rows = bvh.node_row
         ints = bvh.node_int
         n_nodes = rows.shape[0]
-        for chunk in prange(n_chunks):
-            for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                n_steps = 0
-                n_visited = 0
-                n_prim = 0
-                n_bytes = 0
-                (
-                    valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                best_prim = -1
-                best_u = ZERO32
-                best_v = ZERO32
-                box_lo = t_lo - pad
-                box_hi = t_hit + pad
-                node = 0 if valid else n_nodes
-                while node < n_nodes:
-                    # Test this row's box: a hit steps into the subtree, a miss skips it.
-                    entry = box_entry(
-                        rows, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                        box_lo, box_hi,
-                    )  # fmt: skip
-                    if with_stats:
-                        n_steps += 1
-                        n_bytes += SKIP_ROW_BYTES
-                    if entry == INF32:
-                        node = ints[node, 6]
-                        continue
-                    if with_stats:
-                        n_visited += 1
-                    leaf = ints[node, 7]
-                    if leaf >= 0:
-                        # Leaf: test its triangles, shrinking t_hit, then go on after it.
-                        first = bvh.leaf_first[leaf]
-                        last = first + bvh.leaf_count[leaf]
-                        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                            bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                            Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                            query == QUERY_ANY,
+        # Workers take chunks of rays from a shared counter (traversal_steps.worker_count).
+        n_workers = worker_count(n_chunks, n_threads, parallel)
+        next_chunk = np.zeros(1, dtype=np.int64)
+        for _worker in prange(n_workers):
+            while True:
+                chunk = atomic_fetch_add(next_chunk, 0, 1)
+                if chunk >= n_chunks:
+                    break
+                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
+                    n_steps = 0
+                    n_visited = 0
+                    n_prim = 0
+                    n_bytes = 0
+                    (
+                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+                    best_prim = -1
+                    best_u = ZERO32
+                    best_v = ZERO32
+                    box_lo = t_lo - pad
+                    box_hi = t_hit + pad
+                    node = 0 if valid else n_nodes
+                    while node < n_nodes:
+                        # Test this row's box: a hit steps into the subtree, a miss skips it.
+                        entry = box_entry(
+                            rows, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                            box_lo, box_hi,
                         )  # fmt: skip
-                        box_hi = t_hit + pad
                         if with_stats:
-                            n_prim += tested
-                            n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                        if query == QUERY_ANY and best_prim >= 0:
-                            break
-                    node += 1
-                if best_prim >= 0:
-                    hit_t[r] = t_hit
-                    hit_prim[r] = best_prim
-                    hit_u[r] = best_u
-                    hit_v[r] = best_v
-                if with_stats:
-                    counters[r, Counter.STEPS] = n_steps
-                    counters[r, Counter.NODES] = n_visited
-                    counters[r, Counter.BOX_TESTS] = n_steps
-                    counters[r, Counter.PRIM_TESTS] = n_prim
-                    counters[r, Counter.BYTES] = n_bytes
+                            n_steps += 1
+                            n_bytes += SKIP_ROW_BYTES
+                        if entry == INF32:
+                            node = ints[node, 6]
+                            continue
+                        if with_stats:
+                            n_visited += 1
+                        leaf = ints[node, 7]
+                        if leaf >= 0:
+                            # Leaf: test its triangles, shrinking t_hit, then go on after it.
+                            first = bvh.leaf_first[leaf]
+                            last = first + bvh.leaf_count[leaf]
+                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                                query == QUERY_ANY,
+                            )  # fmt: skip
+                            box_hi = t_hit + pad
+                            if with_stats:
+                                n_prim += tested
+                                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                            if query == QUERY_ANY and best_prim >= 0:
+                                break
+                        node += 1
+                    if best_prim >= 0:
+                        hit_t[r] = t_hit
+                        hit_prim[r] = best_prim
+                        hit_u[r] = best_u
+                        hit_v[r] = best_v
+                    if with_stats:
+                        counters[r, Counter.STEPS] = n_steps
+                        counters[r, Counter.NODES] = n_visited
+                        counters[r, Counter.BOX_TESTS] = n_steps
+                        counters[r, Counter.PRIM_TESTS] = n_prim
+                        counters[r, Counter.BYTES] = n_bytes
         return 0
 
     return kernel

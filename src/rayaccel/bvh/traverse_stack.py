@@ -24,7 +24,8 @@ kitchen). Hits are bit-identical to the scalar test's.
 
 The kernel is produced by a factory over compile-time constants (STYLE §4.3):
 ``query`` (closest/any), ``with_stats`` (per-ray counters, pruned away in the plain
-variant) and ``parallel`` (``prange`` over rays, nogil). Each ray writes only its own
+variant) and ``parallel`` (``prange`` over one worker per thread, nogil; each worker
+takes chunks of 64 rays from a shared counter). Each ray writes only its own
 output slots, so results are identical for every thread count.
 
 Counters (``with_stats``): ``steps`` loop iterations, ``nodes`` nodes entered
@@ -44,7 +45,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_kernel, keep_branch, prefetch_row
+from rayaccel._jit import atomic_fetch_add, cpu_kernel, keep_branch, prefetch_row
 from rayaccel._variant import register
 from rayaccel.bvh.layout import (
     PACKED_ROW_BYTES,
@@ -58,7 +59,12 @@ from rayaccel.bvh.layout import (
     pack_bvh2,
 )
 from rayaccel.bvh.pairs import COUNT_COLUMN, REF_COLUMN, PairsBvh2, pairs_layout
-from rayaccel.bvh.traversal_steps import intersect_leaf, ray_prologue, root_entry
+from rayaccel.bvh.traversal_steps import (
+    intersect_leaf,
+    ray_prologue,
+    root_entry,
+    worker_count,
+)
 from rayaccel.config import parallel_section
 from rayaccel.counters import Counter, counters_to_dict, empty_counters
 from rayaccel.errors import InvalidInputError, TraversalOverflowError
@@ -88,10 +94,14 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
     """Return the compiled stack traversal for one (query, with_stats, parallel) variant."""
 
     @cpu_kernel(parallel=parallel)
-    def kernel(bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters):
+    def kernel(
+        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
+    ):
         """Trace ``origin/direction (n, 3)`` over ``bvh`` (PairsArrays); write hits and counters.
 
         ``counters`` is ``(n, N_COUNTERS)`` int32 with stats, a ``(0, N)`` placeholder without.
+        ``n_threads`` is numba's thread count (``numba.get_num_threads()``, read by the
+        caller: inside a kernel it would stop the kernel from being cached).
         Returns the number of rays whose stack would have overflowed (always 0 for
         trees built within ``MAX_DEPTH``).
         """
@@ -101,148 +111,155 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
         box = bvh.box
         refs = bvh.ref
-        # Chunks of consecutive rays (coherent rays together, one stack allocation each);
-        # the wrapper hands them out dynamically so a slow chunk does not stall the batch.
-        for chunk in prange(n_chunks):
+        # One worker per thread takes chunks of consecutive rays (coherent rays together)
+        # from a shared counter until none is left, so a slow region of the batch does
+        # not leave a thread idle (numba's OpenMP layer splits a prange statically).
+        n_workers = worker_count(n_chunks, n_threads, parallel)
+        next_chunk = np.zeros(1, dtype=np.int64)
+        for _worker in prange(n_workers):
             stack_ref = np.empty(STACK_SIZE, dtype=np.int32)
             stack_count = np.empty(STACK_SIZE, dtype=np.int32)
             stack_t = np.empty(STACK_SIZE, dtype=np.float32)
             lane_t = np.empty(2, dtype=np.float32)
-            for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                n_steps = 0
-                n_nodes = 0
-                n_box = 0
-                n_prim = 0
-                peak = 0
-                n_bytes = 0
-                # Per-ray constants, shared with every stackless traversal.
-                (
-                    valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                best_prim = -1
-                # Degenerate rays (zero or non-finite direction or origin, empty interval) miss.
-                if valid:
-                    best_u = ZERO32
-                    best_v = ZERO32
-                    # Boxes are culled against a slightly widened interval (aabb.py).
-                    box_lo = t_lo - pad
-                    box_hi = t_hit + pad
-                    # Columns of the near and far plane pairs (pairs.py): plane k of child
-                    # c is column 2k + c, and nx, ny, nz are the interleaved plane indices.
-                    near_x = 2 * nx
-                    far_x = 2 * fx
-                    near_y = 2 * ny
-                    far_y = 2 * fy
-                    near_z = 2 * nz
-                    far_z = 2 * fz
-                    sp = 0
-                    # The root box is tested once up front.
-                    entry = root_entry(
-                        bvh.root_box, ox, oy, oz, ix, iy, iz,
-                        nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                    )  # fmt: skip
-                    if with_stats:
-                        n_box += 1
-                    node = bvh.root_ref[0]
-                    count = bvh.root_ref[1]
-                    done = entry == INF32
-                    while not done:
+            while True:
+                chunk = atomic_fetch_add(next_chunk, 0, 1)
+                if chunk >= n_chunks:
+                    break
+                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
+                    n_steps = 0
+                    n_nodes = 0
+                    n_box = 0
+                    n_prim = 0
+                    peak = 0
+                    n_bytes = 0
+                    # Per-ray constants, shared with every stackless traversal.
+                    (
+                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+                    best_prim = -1
+                    # Degenerate rays (zero or non-finite direction or origin, empty interval) miss.
+                    if valid:
+                        best_u = ZERO32
+                        best_v = ZERO32
+                        # Boxes are culled against a slightly widened interval (aabb.py).
+                        box_lo = t_lo - pad
+                        box_hi = t_hit + pad
+                        # Columns of the near and far plane pairs (pairs.py): plane k of child
+                        # c is column 2k + c, and nx, ny, nz are the interleaved plane indices.
+                        near_x = 2 * nx
+                        far_x = 2 * fx
+                        near_y = 2 * ny
+                        far_y = 2 * fy
+                        near_z = 2 * nz
+                        far_z = 2 * fz
+                        sp = 0
+                        # The root box is tested once up front.
+                        entry = root_entry(
+                            bvh.root_box, ox, oy, oz, ix, iy, iz,
+                            nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+                        )  # fmt: skip
                         if with_stats:
-                            n_steps += 1
-                            n_nodes += 1
-                        if node >= 0:
-                            # Inner row: start fetching the children's rows, then test both
-                            # children's boxes from this 64-byte row in one 2-lane test.
-                            c0 = refs[node, REF_COLUMN]
-                            c1 = refs[node, REF_COLUMN + 1]
-                            if c0 >= 0:
-                                prefetch_row(box, c0)
-                            if c1 >= 0:
-                                prefetch_row(box, c1)
-                            mask = slab_test2(
-                                box, node, near_x, far_x, near_y, far_y, near_z, far_z,
-                                ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
-                            )  # fmt: skip
+                            n_box += 1
+                        node = bvh.root_ref[0]
+                        count = bvh.root_ref[1]
+                        done = entry == INF32
+                        while not done:
                             if with_stats:
-                                n_box += 2
-                                n_bytes += PACKED_ROW_BYTES
-                            if mask == 3:
-                                # Both hit: the nearer (ties: child 0) is next, the other
-                                # is pushed with its entry distance.
-                                if sp == STACK_SIZE:
-                                    overflow += 1
-                                    break
+                                n_steps += 1
+                                n_nodes += 1
+                            if node >= 0:
+                                # Inner row: start fetching the children's rows, then test both
+                                # children's boxes from this 64-byte row in one 2-lane test.
+                                c0 = refs[node, REF_COLUMN]
+                                c1 = refs[node, REF_COLUMN + 1]
+                                if c0 >= 0:
+                                    prefetch_row(box, c0)
+                                if c1 >= 0:
+                                    prefetch_row(box, c1)
+                                mask = slab_test2(
+                                    box, node, near_x, far_x, near_y, far_y, near_z, far_z,
+                                    ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
+                                )  # fmt: skip
                                 if with_stats:
-                                    n_bytes += _STACK_ENTRY_BYTES
-                                    peak = max(peak, sp + 1)
-                                if lane_t[1] < lane_t[0]:
+                                    n_box += 2
+                                    n_bytes += PACKED_ROW_BYTES
+                                if mask == 3:
+                                    # Both hit: the nearer (ties: child 0) is next, the other
+                                    # is pushed with its entry distance.
+                                    if sp == STACK_SIZE:
+                                        overflow += 1
+                                        break
+                                    if with_stats:
+                                        n_bytes += _STACK_ENTRY_BYTES
+                                        peak = max(peak, sp + 1)
+                                    if lane_t[1] < lane_t[0]:
+                                        keep_branch()
+                                        stack_ref[sp] = c0
+                                        stack_count[sp] = refs[node, COUNT_COLUMN]
+                                        stack_t[sp] = lane_t[0]
+                                        sp += 1
+                                        count = refs[node, COUNT_COLUMN + 1]
+                                        node = c1
+                                        continue
                                     keep_branch()
-                                    stack_ref[sp] = c0
-                                    stack_count[sp] = refs[node, COUNT_COLUMN]
-                                    stack_t[sp] = lane_t[0]
+                                    stack_ref[sp] = c1
+                                    stack_count[sp] = refs[node, COUNT_COLUMN + 1]
+                                    stack_t[sp] = lane_t[1]
                                     sp += 1
+                                    count = refs[node, COUNT_COLUMN]
+                                    node = c0
+                                    continue
+                                if mask == 1:
+                                    # One hit: go there.
+                                    keep_branch()
+                                    count = refs[node, COUNT_COLUMN]
+                                    node = c0
+                                    continue
+                                if mask == 2:
+                                    keep_branch()
                                     count = refs[node, COUNT_COLUMN + 1]
                                     node = c1
                                     continue
-                                keep_branch()
-                                stack_ref[sp] = c1
-                                stack_count[sp] = refs[node, COUNT_COLUMN + 1]
-                                stack_t[sp] = lane_t[1]
-                                sp += 1
-                                count = refs[node, COUNT_COLUMN]
-                                node = c0
-                                continue
-                            if mask == 1:
-                                # One hit: go there.
-                                keep_branch()
-                                count = refs[node, COUNT_COLUMN]
-                                node = c0
-                                continue
-                            if mask == 2:
-                                keep_branch()
-                                count = refs[node, COUNT_COLUMN + 1]
-                                node = c1
-                                continue
-                        else:
-                            # Leaf: test its triangles, shrinking t_hit.
-                            first = ~node
-                            last = first + count
-                            if with_stats:
-                                n_bytes += _PRIM_BYTES * count
-                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                                query == QUERY_ANY,
-                            )  # fmt: skip
-                            box_hi = t_hit + pad
-                            if with_stats:
-                                n_prim += tested
-                            if query == QUERY_ANY and best_prim >= 0:
-                                break
-                        # Pop the next entry still in front of the closest hit.
-                        done = True
-                        while sp > 0:
-                            sp -= 1
-                            if with_stats:
-                                n_bytes += _STACK_ENTRY_BYTES
-                            if stack_t[sp] <= box_hi:
-                                node = stack_ref[sp]
-                                count = stack_count[sp]
-                                done = False
-                                break
-                    if best_prim >= 0:
-                        hit_t[r] = t_hit
-                        hit_prim[r] = best_prim
-                        hit_u[r] = best_u
-                        hit_v[r] = best_v
-                if with_stats:
-                    counters[r, Counter.STEPS] = n_steps
-                    counters[r, Counter.NODES] = n_nodes
-                    counters[r, Counter.BOX_TESTS] = n_box
-                    counters[r, Counter.PRIM_TESTS] = n_prim
-                    counters[r, Counter.STACK_PEAK] = peak
-                    counters[r, Counter.BYTES] = n_bytes
+                            else:
+                                # Leaf: test its triangles, shrinking t_hit.
+                                first = ~node
+                                last = first + count
+                                if with_stats:
+                                    n_bytes += _PRIM_BYTES * count
+                                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                                    query == QUERY_ANY,
+                                )  # fmt: skip
+                                box_hi = t_hit + pad
+                                if with_stats:
+                                    n_prim += tested
+                                if query == QUERY_ANY and best_prim >= 0:
+                                    break
+                            # Pop the next entry still in front of the closest hit.
+                            done = True
+                            while sp > 0:
+                                sp -= 1
+                                if with_stats:
+                                    n_bytes += _STACK_ENTRY_BYTES
+                                if stack_t[sp] <= box_hi:
+                                    node = stack_ref[sp]
+                                    count = stack_count[sp]
+                                    done = False
+                                    break
+                        if best_prim >= 0:
+                            hit_t[r] = t_hit
+                            hit_prim[r] = best_prim
+                            hit_u[r] = best_u
+                            hit_v[r] = best_v
+                    if with_stats:
+                        counters[r, Counter.STEPS] = n_steps
+                        counters[r, Counter.NODES] = n_nodes
+                        counters[r, Counter.BOX_TESTS] = n_box
+                        counters[r, Counter.PRIM_TESTS] = n_prim
+                        counters[r, Counter.STACK_PEAK] = peak
+                        counters[r, Counter.BYTES] = n_bytes
         return overflow
 
     return kernel
@@ -289,9 +306,10 @@ def run_trace(
         hits.u,
         hits.v,
         counters,
+        numba.get_num_threads(),
     )
     if parallel:
-        with parallel_section(), numba.parallel_chunksize(1):
+        with parallel_section():
             overflow = kernel(*args)
     else:
         overflow = kernel(*args)
