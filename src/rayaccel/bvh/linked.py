@@ -36,11 +36,12 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import numba
 import numpy as np
 from numba import prange
 
 from rayaccel._hugepages import empty_huge, zeros_huge
-from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel._jit import atomic_fetch_add, cpu_inline, cpu_kernel
 from rayaccel.bvh._build_common import ceil_log2
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.bvh.refit import FRONTIER_SIZE, push, refit_collapse, top_frontier
@@ -245,13 +246,15 @@ _inner_box = cpu_inline(_inner_box_py)
 
 @cpu_kernel(parallel=True)
 def _emit_kernel(
-    root, left, right, lo, hi, first, count, prim_index, as_leaf, height, n_eff, n_prim
-):
+    root, left, right, lo, hi, first, count, prim_index, as_leaf, height, n_eff, n_prim,
+    n_threads,
+):  # fmt: skip
     """Emit the canonical arrays depth-first (see the module docstring).
 
     The top levels are emitted serially down to the :func:`top_frontier` subtrees,
     whose id and reference ranges are reserved exactly where a serial walk would put
-    them; the subtrees are then emitted in parallel. The output is the serial one.
+    them; the subtrees are then emitted in parallel, ``n_threads`` workers taking them
+    one at a time from a shared counter. The output is the serial one.
     """
     n = left.shape[0]
     n_out = 2 * n_eff[root] - 1
@@ -279,17 +282,22 @@ def _emit_kernel(
         task_node, task_slot, task_depth, task_id, task_ref, inner_slots,
     )  # fmt: skip
     # Each subtree, then its inner boxes (children always follow their parent).
-    for t in prange(n_tasks):
-        _emit_walk(
-            task_node[t], task_slot[t], task_depth[t], task_id[t], task_ref[t], False,
-            is_frontier, left, right, lo, hi, first, count, prim_index, as_leaf, height,
-            n_eff, n_prim, out_lo, out_hi, out_first, out_count, out_prim,
-            task_node, task_slot, task_depth, task_id, task_ref, inner_slots,
-        )  # fmt: skip
-        base = task_id[t]
-        for i in range(base + 2 * n_eff[task_node[t]] - 3, base - 1, -1):
-            _inner_box(out_lo, out_hi, out_first, out_count, i)
-        _inner_box(out_lo, out_hi, out_first, out_count, task_slot[t])
+    next_task = np.zeros(1, dtype=np.int64)
+    for _worker in prange(max(1, min(n_threads, n_tasks))):
+        while True:
+            t = atomic_fetch_add(next_task, 0, 1)
+            if t >= n_tasks:
+                break
+            _emit_walk(
+                task_node[t], task_slot[t], task_depth[t], task_id[t], task_ref[t], False,
+                is_frontier, left, right, lo, hi, first, count, prim_index, as_leaf, height,
+                n_eff, n_prim, out_lo, out_hi, out_first, out_count, out_prim,
+                task_node, task_slot, task_depth, task_id, task_ref, inner_slots,
+            )  # fmt: skip
+            base = task_id[t]
+            for i in range(base + 2 * n_eff[task_node[t]] - 3, base - 1, -1):
+                _inner_box(out_lo, out_hi, out_first, out_count, i)
+            _inner_box(out_lo, out_hi, out_first, out_count, task_slot[t])
     # Inner boxes of the top levels, deepest ids first.
     top_slots = np.sort(inner_slots[:n_inner])
     for i in range(n_inner - 1, -1, -1):
@@ -366,6 +374,7 @@ def refitted_to_canonical(
         height,
         n_eff,
         n_prim,
+        numba.get_num_threads(),
     )
     bvh = Bvh2(
         node_lo=np.ascontiguousarray(lo, dtype=REAL),
