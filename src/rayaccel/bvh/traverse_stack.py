@@ -247,6 +247,10 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                     node = stack_ref[sp]
                                     count = stack_count[sp]
                                     done = False
+                                    # Start fetching the entry below: the subtree
+                                    # since its push may have evicted its row.
+                                    if sp > 0 and stack_ref[sp - 1] >= 0:
+                                        prefetch_row(box, stack_ref[sp - 1])
                                     break
                         if best_prim >= 0:
                             hit_t[r] = t_hit
