@@ -1,7 +1,7 @@
 """Import layering (STYLE §2), checked by parsing every module's imports with ``ast``.
 
 Layers, lowest first: 0 ``_jit dtypes errors counters config _variant _atomic
-_hugepages``;
+_hugepages _work``;
 1 ``kernels``; 2 ``scene rays``; 3 ``bvh kdtree grid``; 4 ``cuda``; 5 ``registry
 metrics``; 6 ``api``; 7 ``render bench``; 8 ``cli``. A module imports only from its
 own layer or lower ones; sibling packages of one layer (``scene``/``rays``,
@@ -27,6 +27,7 @@ LAYERS: dict[str, int] = {
     "_jit": 0, "dtypes": 0, "errors": 0, "counters": 0, "config": 0, "_variant": 0,
     "_hugepages": 0,  # not in STYLE §2: huge-page advice for arrays allocated in kernels
     "_atomic": 0,  # not in STYLE §2 yet: stdlib-only atomic file writes
+    "_work": 0,  # not in STYLE §2: work distribution of parallel kernels (shared counter)
     "kernels": 1,
     "scene": 2, "rays": 2,
     "bvh": 3, "kdtree": 3, "grid": 3,

@@ -137,10 +137,8 @@ def atomic_fetch_add(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
     """Add ``value`` to ``array[index]`` atomically and return the previous value.
 
     Monotonic ordering (``atomicrmw add monotonic``): enough for a shared counter that
-    hands out work items, as the parallel traversals and builders do (numba's OpenMP
-    layer would give each thread a fixed half of a ``prange``; see
-    :func:`rayaccel.bvh.traversal_steps.worker_count_py`). ``array`` is a 1D integer
-    array and ``index`` must be in range.
+    hands out work items (:mod:`rayaccel._work`). ``array`` is a 1D integer array and
+    ``index`` must be in range.
     """
     sig = array.dtype(array, index, array.dtype)
 

@@ -32,8 +32,9 @@ import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import atomic_fetch_add, cpu_inline, cpu_kernel
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
+from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh._build_common import (
     compact_to_canonical,
     depth_forces_median,
@@ -632,11 +633,11 @@ def _split_level(
     ``left[i]`` and ``left[i] + 1``. ``mid[i]`` gets the partition point (-1: leaf).
     ``n_threads`` workers take the nodes one at a time from a shared counter.
     """
-    next_task = np.zeros(1, dtype=np.int64)
-    for _worker in prange(max(1, min(n_threads, task.shape[0]))):
+    counter = new_counter()
+    for _worker in prange(worker_count(task.shape[0], n_threads, True)):
         while True:
-            i = atomic_fetch_add(next_task, 0, 1)
-            if i >= task.shape[0]:
+            i = next_item(counter, task.shape[0])
+            if i < 0:
                 break
             n_used_bins = n_bins if usable[i] else 0
             mid[i] = _split_large(
@@ -671,11 +672,11 @@ def _build_frontier(
     ``n_threads`` workers take the subtrees one at a time, in the given order, from a
     shared counter (numba's OpenMP layer would hand each thread a fixed half).
     """
-    next_task = np.zeros(1, dtype=np.int64)
-    for _worker in prange(max(1, min(n_threads, task_begin.shape[0]))):
+    counter = new_counter()
+    for _worker in prange(worker_count(task_begin.shape[0], n_threads, True)):
         while True:
-            i = atomic_fetch_add(next_task, 0, 1)
-            if i >= task_begin.shape[0]:
+            i = next_item(counter, task_begin.shape[0])
+            if i < 0:
                 break
             box0 = np.empty(12, dtype=np.float32)
             node = task_node[i]

@@ -43,8 +43,9 @@ import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import atomic_fetch_add, cpu_inline, cpu_kernel
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
+from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh._build_common import depth_forces_median, triangle_ref_rows
 from rayaccel.bvh.build_binned_sah import (
     MAX_BINS,
@@ -569,11 +570,11 @@ def _build_frontier(
     ``n_threads`` workers take the subtrees one at a time, in the given order, from a
     shared counter (numba's OpenMP layer would hand each thread a fixed half).
     """
-    next_task = np.zeros(1, dtype=np.int64)
-    for _worker in prange(max(1, min(n_threads, tasks.shape[0]))):
+    counter = new_counter()
+    for _worker in prange(worker_count(tasks.shape[0], n_threads, True)):
         while True:
-            i = atomic_fetch_add(next_task, 0, 1)
-            if i >= tasks.shape[0]:
+            i = next_item(counter, tasks.shape[0])
+            if i < 0:
                 break
             no_tasks = np.empty((1, 5), dtype=np.int32)
             # int64 arguments, as in the serial top-phase call: one compiled signature.

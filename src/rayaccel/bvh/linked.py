@@ -41,7 +41,8 @@ import numpy as np
 from numba import prange
 
 from rayaccel._hugepages import empty_huge, zeros_huge
-from rayaccel._jit import atomic_fetch_add, cpu_inline, cpu_kernel
+from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh._build_common import ceil_log2
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.bvh.refit import FRONTIER_SIZE, push, refit_collapse, top_frontier
@@ -282,11 +283,11 @@ def _emit_kernel(
         task_node, task_slot, task_depth, task_id, task_ref, inner_slots,
     )  # fmt: skip
     # Each subtree, then its inner boxes (children always follow their parent).
-    next_task = np.zeros(1, dtype=np.int64)
-    for _worker in prange(max(1, min(n_threads, n_tasks))):
+    counter = new_counter()
+    for _worker in prange(worker_count(n_tasks, n_threads, True)):
         while True:
-            t = atomic_fetch_add(next_task, 0, 1)
-            if t >= n_tasks:
+            t = next_item(counter, n_tasks)
+            if t < 0:
                 break
             _emit_walk(
                 task_node[t], task_slot[t], task_depth[t], task_id[t], task_ref[t], False,

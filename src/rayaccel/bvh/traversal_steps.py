@@ -145,26 +145,12 @@ def pick_py(first, a, b):
     return b
 
 
-def worker_count_py(n_chunks, n_threads, parallel):
-    """Workers a traversal kernel starts: one per thread (at most one per chunk), or 1.
-
-    Each worker takes chunks of rays from a shared counter
-    (:func:`rayaccel._jit.atomic_fetch_add`) until none is left. numba's OpenMP layer
-    gives each thread a fixed half of a ``prange``; with a chunk counter a thread that
-    drew cheap rays goes on with the rest instead of waiting for the other.
-    """
-    if not parallel:
-        return 1
-    return max(1, min(n_threads, n_chunks))
-
-
 ray_prologue = cpu_inline(ray_prologue_py)
 box_entry = cpu_inline(box_entry_py)
 root_entry = cpu_inline(root_entry_py)
 box_exit = cpu_inline(box_exit_py)
 intersect_leaf = cpu_inline(intersect_leaf_py)
 pick = cpu_inline(pick_py)
-worker_count = cpu_inline(worker_count_py)
 
 
 def check_trail_depth(bvh: Any, cache: dict[str, Any] | None, key: str) -> None:

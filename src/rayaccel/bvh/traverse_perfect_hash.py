@@ -52,8 +52,9 @@ import numpy as np
 from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
-from rayaccel._jit import atomic_fetch_add, cpu_kernel, prefetch_row
+from rayaccel._jit import cpu_kernel, prefetch_row
 from rayaccel._variant import register
+from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layout import (
     CACHE_LINE,
     LEAF_BYTES,
@@ -76,7 +77,6 @@ from rayaccel.bvh.traversal_steps import (
     pick,
     ray_prologue,
     root_entry,
-    worker_count,
 )
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
@@ -255,13 +255,12 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         use_uncles = (bvh.switches & USE_UNCLES) != 0
         use_register = (bvh.switches & USE_REGISTER) != 0
         use_mask = (bvh.switches & USE_LEVEL_MASK) != 0
-        # Workers take chunks of rays from a shared counter (traversal_steps.worker_count).
-        n_workers = worker_count(n_chunks, n_threads, parallel)
-        next_chunk = np.zeros(1, dtype=np.int64)
-        for _worker in prange(n_workers):
+        # Workers take chunks of rays from a shared counter (rayaccel._work).
+        counter = new_counter()
+        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
             while True:
-                chunk = atomic_fetch_add(next_chunk, 0, 1)
-                if chunk >= n_chunks:
+                chunk = next_item(counter, n_chunks)
+                if chunk < 0:
                     break
                 for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
                     n_steps = 0

@@ -43,8 +43,9 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import atomic_fetch_add, cpu_kernel, prefetch_row
+from rayaccel._jit import cpu_kernel, prefetch_row
 from rayaccel._variant import register
+from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layout import (
     LEAF_BYTES,
     PACKED_ROW_BYTES,
@@ -62,7 +63,6 @@ from rayaccel.bvh.traversal_steps import (
     pick,
     ray_prologue,
     root_entry,
-    worker_count,
 )
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
@@ -130,16 +130,15 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
         box = bvh.inner_box
         refs = bvh.inner_ref
-        # Workers take chunks of rays from a shared counter (traversal_steps.worker_count).
-        n_workers = worker_count(n_chunks, n_threads, parallel)
-        next_chunk = np.zeros(1, dtype=np.int64)
-        for _worker in prange(n_workers):
+        # Workers take chunks of rays from a shared counter (rayaccel._work).
+        counter = new_counter()
+        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
             ss_ref = np.empty(max(cap, 1), dtype=np.int32)
             ss_t = np.empty(max(cap, 1), dtype=np.float32)
             ss_level = np.empty(max(cap, 1), dtype=np.int64)
             while True:
-                chunk = atomic_fetch_add(next_chunk, 0, 1)
-                if chunk >= n_chunks:
+                chunk = next_item(counter, n_chunks)
+                if chunk < 0:
                     break
                 for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
                     n_steps = 0

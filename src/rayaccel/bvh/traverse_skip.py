@@ -34,8 +34,9 @@ from typing import Any
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import atomic_fetch_add, cpu_kernel
+from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
+from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layout import LEAF_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.links import SKIP_ROW_BYTES, skip_layout
 from rayaccel.bvh.traversal_steps import (
@@ -43,7 +44,6 @@ from rayaccel.bvh.traversal_steps import (
     box_entry,
     intersect_leaf,
     ray_prologue,
-    worker_count,
 )
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
@@ -74,13 +74,12 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         rows = bvh.node_row
         ints = bvh.node_int
         n_nodes = rows.shape[0]
-        # Workers take chunks of rays from a shared counter (traversal_steps.worker_count).
-        n_workers = worker_count(n_chunks, n_threads, parallel)
-        next_chunk = np.zeros(1, dtype=np.int64)
-        for _worker in prange(n_workers):
+        # Workers take chunks of rays from a shared counter (rayaccel._work).
+        counter = new_counter()
+        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
             while True:
-                chunk = atomic_fetch_add(next_chunk, 0, 1)
-                if chunk >= n_chunks:
+                chunk = next_item(counter, n_chunks)
+                if chunk < 0:
                     break
                 for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
                     n_steps = 0

@@ -45,8 +45,9 @@ import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import atomic_fetch_add, cpu_kernel, keep_branch, prefetch_row
+from rayaccel._jit import cpu_kernel, keep_branch, prefetch_row
 from rayaccel._variant import register
+from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layout import (
     PACKED_ROW_BYTES,
     REF_BYTES,
@@ -63,7 +64,6 @@ from rayaccel.bvh.traversal_steps import (
     intersect_leaf,
     ray_prologue,
     root_entry,
-    worker_count,
 )
 from rayaccel.config import parallel_section
 from rayaccel.counters import Counter, counters_to_dict, empty_counters
@@ -114,16 +114,15 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         # One worker per thread takes chunks of consecutive rays (coherent rays together)
         # from a shared counter until none is left, so a slow region of the batch does
         # not leave a thread idle (numba's OpenMP layer splits a prange statically).
-        n_workers = worker_count(n_chunks, n_threads, parallel)
-        next_chunk = np.zeros(1, dtype=np.int64)
-        for _worker in prange(n_workers):
+        counter = new_counter()
+        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
             stack_ref = np.empty(STACK_SIZE, dtype=np.int32)
             stack_count = np.empty(STACK_SIZE, dtype=np.int32)
             stack_t = np.empty(STACK_SIZE, dtype=np.float32)
             lane_t = np.empty(2, dtype=np.float32)
             while True:
-                chunk = atomic_fetch_add(next_chunk, 0, 1)
-                if chunk >= n_chunks:
+                chunk = next_item(counter, n_chunks)
+                if chunk < 0:
                     break
                 for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
                     n_steps = 0

@@ -35,8 +35,9 @@ import numpy as np
 from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
-from rayaccel._jit import atomic_fetch_add, cpu_kernel, keep_branch, prefetch_row
+from rayaccel._jit import cpu_kernel, keep_branch, prefetch_row
 from rayaccel._variant import register
+from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layout import (
     LEAF_BYTES,
     MAX_DEPTH,
@@ -50,7 +51,6 @@ from rayaccel.bvh.traversal_steps import (
     intersect_leaf,
     ray_prologue,
     root_entry,
-    worker_count,
 )
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.bvh.wide import WIDTHS, WideBvh, count_column, ref_column, row_floats, wide_layout
@@ -107,16 +107,15 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool, width: int = 8) -
         n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
         box = bvh.box
         refs = bvh.ref
-        # Workers take chunks of rays from a shared counter (traversal_steps.worker_count).
-        n_workers = worker_count(n_chunks, n_threads, parallel)
-        next_chunk = np.zeros(1, dtype=np.int64)
-        for _worker in prange(n_workers):
+        # Workers take chunks of rays from a shared counter (rayaccel._work).
+        counter = new_counter()
+        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
             stack_ref = np.empty(stack_size, dtype=np.int32)
             stack_t = np.empty(stack_size, dtype=np.float32)
             lane_t = np.empty(width, dtype=np.float32)
             while True:
-                chunk = atomic_fetch_add(next_chunk, 0, 1)
-                if chunk >= n_chunks:
+                chunk = next_item(counter, n_chunks)
+                if chunk < 0:
                     break
                 for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
                     n_steps = 0
