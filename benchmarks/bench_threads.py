@@ -4,7 +4,8 @@ For each scene and ray type (``rayaccel.bench.raysets.standard_raysets``) every 
 is timed in interleaved rounds on the same rays: Open3D's ``RaycastingScene`` with 1
 and N threads, embreex (always one thread), and each rayaccel traversal with numba
 set to 1 and to N threads. Every timed pass follows an untimed pass of the same system
-(warm caches, as in ``bench_core``). Reports median milliseconds, each system's
+(warm caches; ``rayaccel.bench.harness.timed_round_robin``, as in ``bench_core``).
+Reports median milliseconds, each system's
 speed-up from 1 to N threads, and rayaccel's one-thread time against embreex's: the
 per-thread gap and the scaling gap, which ``× open3d`` in ``bench_core`` mixes.
 Prints a markdown table and writes one JSONL record per row to
@@ -20,7 +21,6 @@ import datetime
 import functools
 import os
 import sys
-import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -45,10 +45,6 @@ def _trace_on(accel, rays, key: str, query: str, threads: int, restore: int) -> 
         numba.set_num_threads(restore)
 
 
-def _median_ms(times: list[float]) -> float:
-    return float(np.median(times) * 1e3)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", default=None)
@@ -70,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import rayaccel
     from rayaccel.bench import report
+    from rayaccel.bench.harness import timed_round_robin
     from rayaccel.bench.peers import get_peer
     from rayaccel.bench.raysets import parse_kinds, standard_raysets
     from rayaccel.scene import catalog
@@ -118,14 +115,11 @@ def main(argv: list[str] | None = None) -> int:
                     systems[f"{key}-{threads}"] = functools.partial(
                         _trace_on, accel, rays, key, query, threads, n
                     )
-            times: dict[str, list[float]] = {label: [] for label in systems}
-            for _ in range(args.repeats):
-                for label, run in systems.items():
-                    run()
-                    start = time.perf_counter()
-                    run()
-                    times[label].append(time.perf_counter() - start)
-            ms = {label: _median_ms(t) for label, t in times.items()}
+            seconds, _ = timed_round_robin(list(systems.values()), args.repeats)
+            ms = {
+                label: float(np.median(t) * 1e3)
+                for label, t in zip(systems, seconds, strict=True)
+            }
             embreex = ms.get("embreex-1")
             for base in [*(k for k in args.traversals), "open3d"]:
                 one, many = ms.get(f"{base}-1"), ms.get(f"{base}-{n}")

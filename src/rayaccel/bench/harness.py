@@ -296,7 +296,7 @@ def _timed(fn: Callable[[], Any], repeats: int) -> tuple[np.ndarray, Any]:
     return seconds, result
 
 
-def _timed_round_robin(
+def timed_round_robin(
     fns: Sequence[Callable[[], Any]], repeats: int
 ) -> tuple[list[np.ndarray], list[Any]]:
     """Time each of ``fns`` once per round for ``repeats`` rounds, each right after an untimed run.
@@ -739,7 +739,7 @@ class _Run:
         reference = self.reference_queries.get(kind) if kind in rates else None
         if reference is not None:
             passes.append(reference)
-        timings, results = _timed_round_robin(passes, config.repeats)
+        timings, results = timed_round_robin(passes, config.repeats)
         seconds, stats_seconds, hits = timings[0], timings[1], results[1]
         timing = _timing_fields(rays.n_rays, seconds)
         record.update(timing)

@@ -670,7 +670,7 @@ def _build_frontier(
     """Build every frontier subtree concurrently, each into its reserved node block.
 
     ``n_threads`` workers take the subtrees one at a time, in the given order, from a
-    shared counter (numba's OpenMP layer would hand each thread a fixed half).
+    shared counter (:mod:`rayaccel._work`).
     """
     counter = new_counter()
     for _worker in prange(worker_count(task_begin.shape[0], n_threads, True)):

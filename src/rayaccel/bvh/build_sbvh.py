@@ -568,7 +568,7 @@ def _build_frontier(
     """Build every frontier subtree concurrently into its reserved blocks.
 
     ``n_threads`` workers take the subtrees one at a time, in the given order, from a
-    shared counter (numba's OpenMP layer would hand each thread a fixed half).
+    shared counter (:mod:`rayaccel._work`).
     """
     counter = new_counter()
     for _worker in prange(worker_count(tasks.shape[0], n_threads, True)):

@@ -39,12 +39,7 @@ from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layout import LEAF_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.links import SKIP_ROW_BYTES, skip_layout
-from rayaccel.bvh.traversal_steps import (
-    INF32,
-    box_entry,
-    intersect_leaf,
-    ray_prologue,
-)
+from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue
 from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.rays.batch import HitBatch, RayBatch

@@ -100,8 +100,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         """Trace ``origin/direction (n, 3)`` over ``bvh`` (PairsArrays); write hits and counters.
 
         ``counters`` is ``(n, N_COUNTERS)`` int32 with stats, a ``(0, N)`` placeholder without.
-        ``n_threads`` is numba's thread count (``numba.get_num_threads()``, read by the
-        caller: inside a kernel it would stop the kernel from being cached).
+        ``n_threads`` is ``numba.get_num_threads()``, read by the caller (:mod:`rayaccel._work`).
         Returns the number of rays whose stack would have overflowed (always 0 for
         trees built within ``MAX_DEPTH``).
         """
@@ -112,8 +111,7 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
         box = bvh.box
         refs = bvh.ref
         # One worker per thread takes chunks of consecutive rays (coherent rays together)
-        # from a shared counter until none is left, so a slow region of the batch does
-        # not leave a thread idle (numba's OpenMP layer splits a prange statically).
+        # from a shared counter until none is left (rayaccel._work).
         counter = new_counter()
         for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
             stack_ref = np.empty(STACK_SIZE, dtype=np.int32)
