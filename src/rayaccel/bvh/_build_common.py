@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from rayaccel._hugepages import empty_huge, full_huge
+from rayaccel._hugepages import empty_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.bvh.refs import BuildRefs, check_refs, remove_leaf_duplicates
@@ -146,46 +146,52 @@ depth_forces_median = cpu_inline(depth_forces_median)
 
 @cpu_kernel(parallel=True)
 def _compact_kernel(t_lo, t_hi, t_first, t_count, n_used_hint):
-    """Renumber reachable pool nodes depth-first; return canonical arrays."""
-    n_cap = t_count.shape[0]
-    new_of = full_huge(n_cap, -1, np.int32)
-    order = empty_huge(n_used_hint, np.int32)
+    """Renumber reachable pool nodes depth-first; return canonical arrays.
+
+    The walk carries each node's new id on its stack, so it writes the new
+    ``first``/``count`` at once and needs no old-to-new map of the whole pool
+    (that map's first touch of fresh pages was most of this kernel's time).
+    """
+    n_out = max(n_used_hint, 1)
+    order = empty_huge(n_out, np.int32)
+    first = empty_huge(n_out, np.int32)
+    count = empty_huge(n_out, np.int32)
     # Depth-first walk; a pair of children gets consecutive new ids when its parent is numbered.
-    stack = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
-    stack[0] = 0
+    stack_old = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
+    stack_new = np.empty(2 * MAX_DEPTH + 4, dtype=np.int32)
+    stack_old[0] = 0
+    stack_new[0] = 0
     sp = 1
-    new_of[0] = 0
     order[0] = 0
     next_id = 1
     while sp > 0:
         sp -= 1
-        old = stack[sp]
-        if t_count[old] == 0:
+        old = stack_old[sp]
+        new = stack_new[sp]
+        n = t_count[old]
+        count[new] = n
+        if n == 0:
             left = t_first[old]
-            new_of[left] = next_id
-            new_of[left + 1] = next_id + 1
+            first[new] = next_id
             order[next_id] = left
             order[next_id + 1] = left + 1
-            next_id += 2
-            stack[sp] = left + 1
-            stack[sp + 1] = left
+            stack_old[sp] = left + 1
+            stack_new[sp] = next_id + 1
+            stack_old[sp + 1] = left
+            stack_new[sp + 1] = next_id
             sp += 2
+            next_id += 2
+        else:
+            first[new] = t_first[old]
     lo = empty_huge((next_id, 3), np.float32)
     hi = empty_huge((next_id, 3), np.float32)
-    first = empty_huge(next_id, np.int32)
-    count = empty_huge(next_id, np.int32)
-    # Gather the rows in the new order (independent rows: parallel).
+    # Gather the boxes in the new order (independent rows: parallel).
     for new in prange(next_id):
         old = order[new]
         for a in range(3):
             lo[new, a] = t_lo[old, a]
             hi[new, a] = t_hi[old, a]
-        count[new] = t_count[old]
-        if t_count[old] == 0:
-            first[new] = new_of[t_first[old]]
-        else:
-            first[new] = t_first[old]
-    return lo, hi, first, count
+    return lo, hi, first[:next_id], count[:next_id]
 
 
 def compact_to_canonical(

@@ -95,19 +95,27 @@ def _bin_prims_py(refs, begin, end, cb_lo, scale, n_bins, counts, bin_box):
     """Accumulate references ``refs[begin:end]`` into per-axis bins (counts and boxes).
 
     A reference row is ``[lo.x, lo.y, lo.z, id, hi.x, hi.y, hi.z, -]``; its binning key is
-    the doubled centroid ``lo + hi`` (no multiply, same order as the centroid).
+    the doubled centroid ``lo + hi`` (no multiply, same order as the centroid). The
+    bin mapping is read into scalars once and the axes are written out: with a loop
+    over the axes indexing ``cb_lo``/``scale`` (which LLVM must assume the bin stores
+    may overwrite) binning took 1.4× as long (6.5 against 4.5 ns per reference,
+    kitchen rows, one thread).
     """
+    lo_x, lo_y, lo_z = cb_lo[0], cb_lo[1], cb_lo[2]
+    s_x, s_y, s_z = scale[0], scale[1], scale[2]
+    last = n_bins - 1
     for k in range(end - begin):
         # Unsigned indices: no negative-index wraparound code per access.
         i = np.uint64(begin + k)
-        for a in range(3):
-            b = int((refs[i, a] + refs[i, 4 + a] - cb_lo[a]) * scale[a])
-            if b > n_bins - 1:
-                b = n_bins - 1
-            if b < 0:
-                b = 0
-            counts[a, np.uint64(b)] += 1
-            grow_box_row(bin_box, a, b, refs, i)
+        bx = max(0, min(int((refs[i, 0] + refs[i, 4] - lo_x) * s_x), last))
+        by = max(0, min(int((refs[i, 1] + refs[i, 5] - lo_y) * s_y), last))
+        bz = max(0, min(int((refs[i, 2] + refs[i, 6] - lo_z) * s_z), last))
+        counts[0, np.uint64(bx)] += 1
+        grow_box_row(bin_box, 0, bx, refs, i)
+        counts[1, np.uint64(by)] += 1
+        grow_box_row(bin_box, 1, by, refs, i)
+        counts[2, np.uint64(bz)] += 1
+        grow_box_row(bin_box, 2, bz, refs, i)
 
 
 bin_prims = cpu_inline(_bin_prims_py)
@@ -311,13 +319,13 @@ def _partition(
     """Partition ``refs[begin:end]`` so bins ``<= split_bin`` come first; return the middle.
 
     Rows are swapped whole (32 bytes), so later passes read memory sequentially. Also
-    writes both sides' doubled-centroid bounds into ``left_cb``/``right_cb`` (lo 0:3, hi 3:6).
+    writes both sides' doubled-centroid bounds into ``left_cb``/``right_cb`` (lo 0:3, hi 3:6),
+    kept in scalars during the loop (array elements would be reloaded and stored
+    around every row swap, which LLVM must assume may overwrite them).
     """
-    for k in range(3):
-        left_cb[k] = np.inf
-        left_cb[3 + k] = -np.inf
-        right_cb[k] = np.inf
-        right_cb[3 + k] = -np.inf
+    inf = np.float32(np.inf)
+    l_lo_x = l_lo_y = l_lo_z = r_lo_x = r_lo_y = r_lo_z = inf
+    l_hi_x = l_hi_y = l_hi_z = r_hi_x = r_hi_y = r_hi_z = -inf
     i = begin
     j = end - 1
     while i <= j:
@@ -327,23 +335,34 @@ def _partition(
             b = n_bins - 1
         if b < 0:
             b = 0
+        cx = refs[ui, 0] + refs[ui, 4]
+        cy = refs[ui, 1] + refs[ui, 5]
+        cz = refs[ui, 2] + refs[ui, 6]
         if b <= split_bin:
-            for k in range(3):
-                c = refs[ui, k] + refs[ui, 4 + k]
-                left_cb[k] = min(left_cb[k], c)
-                left_cb[3 + k] = max(left_cb[3 + k], c)
+            l_lo_x = min(l_lo_x, cx)
+            l_lo_y = min(l_lo_y, cy)
+            l_lo_z = min(l_lo_z, cz)
+            l_hi_x = max(l_hi_x, cx)
+            l_hi_y = max(l_hi_y, cy)
+            l_hi_z = max(l_hi_z, cz)
             i += 1
         else:
+            r_lo_x = min(r_lo_x, cx)
+            r_lo_y = min(r_lo_y, cy)
+            r_lo_z = min(r_lo_z, cz)
+            r_hi_x = max(r_hi_x, cx)
+            r_hi_y = max(r_hi_y, cy)
+            r_hi_z = max(r_hi_z, cz)
             uj = np.uint64(j)
-            for k in range(3):
-                c = refs[ui, k] + refs[ui, 4 + k]
-                right_cb[k] = min(right_cb[k], c)
-                right_cb[3 + k] = max(right_cb[3 + k], c)
             for k in range(8):
                 tmp = refs[ui, k]
                 refs[ui, k] = refs[uj, k]
                 refs[uj, k] = tmp
             j -= 1
+    left_cb[0], left_cb[1], left_cb[2] = l_lo_x, l_lo_y, l_lo_z
+    left_cb[3], left_cb[4], left_cb[5] = l_hi_x, l_hi_y, l_hi_z
+    right_cb[0], right_cb[1], right_cb[2] = r_lo_x, r_lo_y, r_lo_z
+    right_cb[3], right_cb[4], right_cb[5] = r_hi_x, r_hi_y, r_hi_z
     return i
 
 
@@ -498,14 +517,10 @@ def _build_subtree(
             _set_node_box(t_lo, t_hi, left + 1, half[0:6])
             for k in range(6):
                 right_cb[k] = half[6 + k]
-        # Push the larger child first so the smaller is processed next (stack stays O(log n)).
-        n_left = mid - lo_i
-        n_right = hi_i - mid
-        if n_left >= n_right:
-            order0, order1 = 0, 1
-        else:
-            order0, order1 = 1, 0
-        for c in (order0, order1):
+        # Push the right child first so the left is processed next: pairs are then
+        # allocated in the depth-first order compaction walks (sequential memory there).
+        # The stack holds at most one pending right child per level (depth <= MAX_DEPTH).
+        for c in (1, 0):
             stack_node[sp] = left + c
             stack_begin[sp] = lo_i if c == 0 else mid
             stack_end[sp] = mid if c == 0 else hi_i
