@@ -170,10 +170,9 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                 # children's boxes from this 64-byte row in one 2-lane test.
                                 c0 = refs[node, REF_COLUMN]
                                 c1 = refs[node, REF_COLUMN + 1]
-                                if c0 >= 0:
-                                    prefetch_row(box, c0)
-                                if c1 >= 0:
-                                    prefetch_row(box, c1)
+                                # (A leaf child prefetches row 0 instead: no branch to mispredict.)
+                                prefetch_row(box, max(c0, 0))
+                                prefetch_row(box, max(c1, 0))
                                 mask = slab_test2(
                                     box, node, near_x, far_x, near_y, far_y, near_z, far_z,
                                     ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
@@ -245,9 +244,9 @@ def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
                                     count = stack_count[sp]
                                     done = False
                                     # Start fetching the entry below: the subtree
-                                    # since its push may have evicted its row.
-                                    if sp > 0 and stack_ref[sp - 1] >= 0:
-                                        prefetch_row(box, stack_ref[sp - 1])
+                                    # since its push may have evicted its row
+                                    # (branch-free: a leaf or no entry prefetches row 0 or itself).
+                                    prefetch_row(box, max(stack_ref[max(sp - 1, 0)], 0))
                                     break
                         if best_prim >= 0:
                             hit_t[r] = t_hit
