@@ -43,7 +43,7 @@ from rayaccel.bvh._build_common import (
 from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
 from rayaccel.bvh.refs import BuildRefs, check_refs
 from rayaccel.errors import InvalidInputError
-from rayaccel.kernels.box_grow import grow_box_row
+from rayaccel.kernels.box_grow import grow_bounds, grow_box_row
 from rayaccel.scene.mesh import TriangleMesh
 
 MAX_BINS = 256
@@ -324,8 +324,8 @@ def _partition(
     around every row swap, which LLVM must assume may overwrite them).
     """
     inf = np.float32(np.inf)
-    l_lo_x = l_lo_y = l_lo_z = r_lo_x = r_lo_y = r_lo_z = inf
-    l_hi_x = l_hi_y = l_hi_z = r_hi_x = r_hi_y = r_hi_z = -inf
+    left = (inf, inf, inf, -inf, -inf, -inf)
+    right = left
     i = begin
     j = end - 1
     while i <= j:
@@ -339,30 +339,19 @@ def _partition(
         cy = refs[ui, 1] + refs[ui, 5]
         cz = refs[ui, 2] + refs[ui, 6]
         if b <= split_bin:
-            l_lo_x = min(l_lo_x, cx)
-            l_lo_y = min(l_lo_y, cy)
-            l_lo_z = min(l_lo_z, cz)
-            l_hi_x = max(l_hi_x, cx)
-            l_hi_y = max(l_hi_y, cy)
-            l_hi_z = max(l_hi_z, cz)
+            left = grow_bounds(left, cx, cy, cz)
             i += 1
         else:
-            r_lo_x = min(r_lo_x, cx)
-            r_lo_y = min(r_lo_y, cy)
-            r_lo_z = min(r_lo_z, cz)
-            r_hi_x = max(r_hi_x, cx)
-            r_hi_y = max(r_hi_y, cy)
-            r_hi_z = max(r_hi_z, cz)
+            right = grow_bounds(right, cx, cy, cz)
             uj = np.uint64(j)
             for k in range(8):
                 tmp = refs[ui, k]
                 refs[ui, k] = refs[uj, k]
                 refs[uj, k] = tmp
             j -= 1
-    left_cb[0], left_cb[1], left_cb[2] = l_lo_x, l_lo_y, l_lo_z
-    left_cb[3], left_cb[4], left_cb[5] = l_hi_x, l_hi_y, l_hi_z
-    right_cb[0], right_cb[1], right_cb[2] = r_lo_x, r_lo_y, r_lo_z
-    right_cb[3], right_cb[4], right_cb[5] = r_hi_x, r_hi_y, r_hi_z
+    for k in range(6):
+        left_cb[k] = left[k]
+        right_cb[k] = right[k]
     return i
 
 

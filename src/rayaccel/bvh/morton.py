@@ -24,6 +24,7 @@ from numba.extending import intrinsic
 
 from rayaccel._hugepages import empty_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel.kernels.box_grow import grow_bounds
 
 
 @intrinsic
@@ -72,24 +73,14 @@ def morton_codes(prim_lo, prim_hi, bits_per_axis):
     size = (n + n_chunks - 1) // n_chunks
     part = np.empty((n_chunks, 6))
     for k in prange(n_chunks):
-        lo_x = lo_y = lo_z = np.inf
-        hi_x = hi_y = hi_z = -np.inf
+        bounds = (np.inf, np.inf, np.inf, -np.inf, -np.inf, -np.inf)
         for i in range(k * size, min(n, (k + 1) * size)):
             cx = np.float64(prim_lo[i, 0]) + prim_hi[i, 0]
             cy = np.float64(prim_lo[i, 1]) + prim_hi[i, 1]
             cz = np.float64(prim_lo[i, 2]) + prim_hi[i, 2]
-            lo_x = min(lo_x, cx)
-            lo_y = min(lo_y, cy)
-            lo_z = min(lo_z, cz)
-            hi_x = max(hi_x, cx)
-            hi_y = max(hi_y, cy)
-            hi_z = max(hi_z, cz)
-        part[k, 0] = lo_x
-        part[k, 1] = lo_y
-        part[k, 2] = lo_z
-        part[k, 3] = hi_x
-        part[k, 4] = hi_y
-        part[k, 5] = hi_z
+            bounds = grow_bounds(bounds, cx, cy, cz)
+        for a in range(6):
+            part[k, a] = bounds[a]
     c_lo = np.full(3, np.inf)
     c_hi = np.full(3, -np.inf)
     for k in range(n_chunks):

@@ -12,6 +12,8 @@ holds its id bits); only lanes 0–2 and 4–6 are meaningful.
 
 The min and max are ordered compare-and-select, as ``min``/``max`` in the scalar code,
 so the boxes are bit-identical to a lane loop for finite input.
+
+:func:`grow_bounds` is the counterpart for a box kept in registers, as a 6-tuple.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
+
+from rayaccel._jit import cpu_inline
 
 
 @intrinsic
@@ -55,3 +59,18 @@ def grow_box_row(typingctx: Any, bins: Any, axis: Any, slot: Any, rows: Any, row
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+def _grow_bounds_py(bounds, x, y, z):
+    """Return ``bounds`` (``(lo.x, lo.y, lo.z, hi.x, hi.y, hi.z)``, a tuple) grown by a point.
+
+    For loops that keep a box in registers: a box in array elements is reloaded and
+    stored back around every store LLVM cannot prove unrelated (a row swap, a bin update).
+    """
+    return (
+        min(bounds[0], x), min(bounds[1], y), min(bounds[2], z),
+        max(bounds[3], x), max(bounds[4], y), max(bounds[5], z),
+    )  # fmt: skip
+
+
+grow_bounds = cpu_inline(_grow_bounds_py)
