@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numba
@@ -63,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
             "mtris_per_s": round(mesh.n_triangles / ms / 1e3, 3),
             "x_open3d_speed": round(reference / ms, 3) if reference else None,
         })  # fmt: skip
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    stamp = report.utc_stamp()
     output = Path(args.json or Path(__file__).parent / "results" / f"bench_build-{stamp}.jsonl")
     writer = report.JsonlWriter(output)
     for record in records:

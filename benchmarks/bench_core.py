@@ -18,7 +18,6 @@ repository root) when that folder exists and the variable is not already set.
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
 import sys
 import warnings
@@ -56,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     from rayaccel.bench.peers import parse_peers
     from rayaccel.bench.raysets import parse_kinds
 
-    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    stamp = report.utc_stamp()
     output = args.output or RESULTS / f"bench_core-{stamp}.jsonl"
     threads = [int(n) for n in args.threads.split(",") if n.strip()]
     config = harness.BenchConfig(

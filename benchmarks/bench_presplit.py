@@ -17,7 +17,6 @@ import argparse
 import statistics
 import sys
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numba
@@ -86,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--build-repeats", type=int, default=2)
     parser.add_argument("--json", default=None, help="JSONL output (default results/...)")
     args = parser.parse_args(argv)
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    stamp = report.utc_stamp()
     output = Path(args.json or Path(__file__).parent / "results" / f"bench_presplit-{stamp}.jsonl")
     writer = report.JsonlWriter(output)
     records = []

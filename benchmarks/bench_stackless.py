@@ -17,7 +17,6 @@ bit. Prints a markdown table and writes one JSONL record per row to
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
 import sys
 import time
@@ -74,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     scenes = args.scenes or [s for s in DEFAULT_SCENES if s in available] or list(PROCEDURAL)
     wanted = {v for v in args.variants.split(",") if v}
     variants = [v for v in VARIANTS if not wanted or v[0] in wanted or v[0] == "stack"]
-    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    stamp = report.utc_stamp()
     output = args.output or RESULTS / f"bench_stackless-{stamp}.jsonl"
     writer = report.JsonlWriter(output)
     rows: list[dict] = []

@@ -17,7 +17,6 @@ Prints a markdown table and writes one JSONL record per row to
 from __future__ import annotations
 
 import argparse
-import datetime
 import functools
 import os
 import sys
@@ -76,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--threads: expected 2..{numba.config.NUMBA_NUM_THREADS}, got {n}")
     available = catalog.names()
     scenes = args.scenes or [s for s in DEFAULT_SCENES if s in available] or list(PROCEDURAL)
-    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    stamp = report.utc_stamp()
     output = args.output or RESULTS / f"bench_threads-{stamp}.jsonl"
     writer = report.JsonlWriter(output)
     rows: list[dict] = []

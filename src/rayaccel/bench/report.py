@@ -16,6 +16,7 @@ stats overhead.
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 import os
@@ -48,6 +49,11 @@ COLUMNS: tuple[str, ...] = (
 )
 #: Columns right-aligned in tables (numbers).
 NUMERIC = frozenset(COLUMNS) - {"scene", "system", "rays"}
+
+
+def utc_stamp() -> str:
+    """Return the current UTC time as ``YYYYMMDDTHHMMSSZ``, the stamp in result file names."""
+    return datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
 
 
 def _json_default(value: object) -> Any:
