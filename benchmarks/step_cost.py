@@ -2,10 +2,11 @@
 
 For each scene and ray type (``rayaccel.bench.raysets.standard_raysets``) the batch
 is traced as it is ("distinct") and as a batch of the same length made of eight of
-its 64-ray chunks, tiled ("repeated"): the same per-chunk work, but every ray is
-traced thousands of times, so its nodes and triangles stay in cache. Both are timed
-interleaved (median of ``--repeats`` passes after a warm-up pass of each) and
-reported as nanoseconds per node visit per thread (time × threads / node visits).
+its chunks of ``RAY_CHUNK`` rays (the traversal's work item), tiled ("repeated"):
+the same per-chunk work, but every ray is traced thousands of times, so its nodes and
+triangles stay in cache. Both are timed interleaved (median of ``--repeats`` passes
+after a warm-up pass of each) and reported as nanoseconds per node visit per thread
+(time × threads / node visits).
 
 A repeated ray also repeats its branch outcomes, which the CPU's predictor can
 learn, so the gap between the two columns is memory *and* mispredicted branches,
@@ -27,18 +28,19 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_SCENES = ROOT.parent / "shared" / "scenes"
 RESULTS = Path(__file__).resolve().parent / "results"
-CHUNK = 64
 N_CHUNKS = 8
+TRAVERSAL = "bvh2.stack"
 
 
 def repeated_batch(rays, seed: int):
     """Return a batch of ``rays.n_rays`` rays made of ``N_CHUNKS`` chunks of ``rays``, tiled."""
+    from rayaccel.bvh.traverse_stack import RAY_CHUNK
     from rayaccel.rays.batch import RayBatch
 
     n = rays.n_rays
     rng = np.random.Generator(np.random.PCG64(seed))
-    starts = CHUNK * rng.integers(0, max(n // CHUNK, 1), N_CHUNKS)
-    few = (starts[:, None] + np.arange(CHUNK)).ravel() % n
+    starts = RAY_CHUNK * rng.integers(0, max(n // RAY_CHUNK, 1), N_CHUNKS)
+    few = (starts[:, None] + np.arange(RAY_CHUNK)).ravel() % n
     pick = np.resize(few, n)
     return RayBatch(rays.origin[pick], rays.direction[pick], rays.tmin[pick], rays.tmax[pick])
 
@@ -76,12 +78,14 @@ def main(argv: list[str] | None = None) -> int:
         sets = standard_raysets(mesh, scene, kinds=parse_kinds(args.rays), accel=accel)
         for kind, rayset in sets.items():
             batches = {"distinct": rayset.rays, "repeated": repeated_batch(rayset.rays, 0)}
-            nodes = {
-                label: float(accel.trace(b, query=rayset.query, stats=True).stats["nodes"].sum())
+            query = rayset.query
+            counted = {
+                label: accel.trace(b, query=query, traversal=TRAVERSAL, stats=True)
                 for label, b in batches.items()
             }
+            nodes = {label: float(hits.stats["nodes"].sum()) for label, hits in counted.items()}
             passes = [
-                lambda b=b, a=accel, q=rayset.query: a.trace(b, query=q, traversal="bvh2.stack")
+                lambda b=b, a=accel, q=query: a.trace(b, query=q, traversal=TRAVERSAL)
                 for b in batches.values()
             ]
             seconds, _ = timed_round_robin(passes, args.repeats)
