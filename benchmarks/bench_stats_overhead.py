@@ -27,7 +27,7 @@ import numba
 import numpy as np
 
 import rayaccel as ra
-from rayaccel.bvh import traverse_stack
+from rayaccel.bvh.traverse import stack as traverse_stack
 from rayaccel.rays.bounce import diffuse_rays
 from rayaccel.rays.camera import frame_bounds, from_preset
 

@@ -34,7 +34,7 @@ TRAVERSAL = "bvh2.stack"
 
 def repeated_batch(rays, seed: int):
     """Return a batch of ``rays.n_rays`` rays made of ``N_CHUNKS`` chunks of ``rays``, tiled."""
-    from rayaccel.bvh.traverse_stack import RAY_CHUNK
+    from rayaccel.bvh.traverse.stack import RAY_CHUNK
     from rayaccel.rays.batch import RayBatch
 
     n = rays.n_rays

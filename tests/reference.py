@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layout import Bvh2
+from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.counters import COUNTER_NAMES
 from rayaccel.kernels.brute_force import QUERY_ANY, QUERY_CLOSEST, brute_force_trace
 from rayaccel.kernels.triangle import (
@@ -314,7 +314,7 @@ def check_counter_invariants(rays: RayBatch, hits: HitBatch) -> None:
 
 def check_stack_counters(bvh, rays: RayBatch, closest: HitBatch, any_hit: HitBatch) -> None:
     """Invariants specific to ``bvh2.stack`` (one step per node, two box tests per inner)."""
-    from rayaccel.bvh.layout import STACK_SIZE
+    from rayaccel.bvh.layouts.bvh2 import STACK_SIZE
 
     for hits in (closest, any_hit):
         s = hits.stats

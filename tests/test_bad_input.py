@@ -11,7 +11,7 @@ import rayaccel
 import reference
 from bvh.test_build import chain_bvh
 from rayaccel import registry
-from rayaccel.bvh.layout import MAX_DEPTH, STACK_SIZE
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, STACK_SIZE
 from rayaccel.errors import (
     InvalidInputError,
     TraversalOverflowError,

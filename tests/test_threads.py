@@ -173,7 +173,7 @@ def _kernel_dispatchers():
 
 def test_signature_discipline():
     """Float64, int, Fortran and strided inputs are coerced: one signature per kernel."""
-    from rayaccel.bvh.traverse_stack import PARALLEL_MIN_RAYS, trace_kernel
+    from rayaccel.bvh.traverse.stack import PARALLEL_MIN_RAYS, trace_kernel
 
     mesh64 = rayaccel.TriangleMesh(np.asfortranarray(reference.icosphere(2).vertices,
                                                      dtype=np.float64),
@@ -199,6 +199,6 @@ def test_signature_discipline():
         assert len(kernel.signatures) == 1, (query, stats, parallel, kernel.signatures)
     # Every other kernel in the package: at most one signature (after the whole session).
     kernels = _kernel_dispatchers()
-    assert "rayaccel.bvh.layout._check_topology" in kernels
+    assert "rayaccel.bvh.layouts.bvh2._check_topology" in kernels
     many = {name: d.signatures for name, d in kernels.items() if len(d.signatures) > 1}
     assert not many, f"kernels compiled for several signatures: {many}"

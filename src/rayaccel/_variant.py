@@ -41,7 +41,7 @@ class Variant:
         pre-split references also takes ``refs=`` (:attr:`takes_refs`). Step of stage
         ``"after"``: ``func(structure, mesh, options) -> structure`` (a post-process
         chained after a builder). Step of stage ``"before"``: ``func(mesh, options) ->
-        BuildRefs`` (:mod:`rayaccel.bvh.refs`), the references the builder then
+        BuildRefs`` (:mod:`rayaccel.bvh.builders.refs`), the references the builder then
         builds over. Traversal: see :mod:`rayaccel.api`.
     options : type
         Frozen dataclass of keyword options with defaults.

@@ -50,7 +50,7 @@ class Accel:
         The builder's registry key.
     mesh : TriangleMesh
     structure : object
-        The canonical structure (e.g. :class:`rayaccel.bvh.layout.Bvh2`).
+        The canonical structure (e.g. :class:`rayaccel.bvh.layouts.bvh2.Bvh2`).
     options : object
         The builder options used.
     build_ms : float
@@ -202,7 +202,7 @@ class Accel:
         Each ``state.next_hits()`` call resumes every ray where it stopped and returns
         its next hit in traversal order; ``state.all_hits()`` collects every hit in
         ``[tmin, tmax]`` sorted by ray, ``t`` and primitive. See
-        :class:`rayaccel.bvh.traverse_perfect_hash.TraversalState`.
+        :class:`rayaccel.bvh.traverse.perfect_hash.TraversalState`.
 
         Raises
         ------
@@ -214,7 +214,7 @@ class Accel:
                 f"traversal_state: only bvh2 structures can pause and resume, "
                 f"this accel is a {self.structure_name!r}"
             )
-        from rayaccel.bvh.traverse_perfect_hash import start_traversal
+        from rayaccel.bvh.traverse.perfect_hash import start_traversal
 
         rays = RayBatch(origins, directions, tmin, tmax)
         with self._lock:

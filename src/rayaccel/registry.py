@@ -10,7 +10,7 @@ A build key may chain steps after the builder: ``bvh2.lbvh+presplit+reinsert+col
 (:func:`get_chain`). Each step has a *stage*: ``"after"`` steps (the default) are
 post-processes of the built structure and run in key order; a ``"before"`` step
 (``bvh2+presplit``) runs ahead of the builder and makes the references
-(:class:`rayaccel.bvh.refs.BuildRefs`) it builds over, for builders that take
+(:class:`rayaccel.bvh.builders.refs.BuildRefs`) it builds over, for builders that take
 ``refs=`` (:attr:`Variant.takes_refs`). Modules are imported lazily from the explicit
 :data:`BUILTIN_MODULES` tuple the first time the registry is read.
 """
@@ -40,24 +40,24 @@ __all__ = [
 
 #: Every module that registers variants (a test checks no build_/traverse_ module is missing).
 BUILTIN_MODULES: tuple[str, ...] = (
-    "rayaccel.bvh.build_binned_sah",
-    "rayaccel.bvh.build_insertion",
-    "rayaccel.bvh.build_lbvh",
-    "rayaccel.bvh.build_ploc",
-    "rayaccel.bvh.build_sbvh",
-    "rayaccel.bvh.build_sweep_sah",
-    "rayaccel.bvh.step_collapse",
-    "rayaccel.bvh.step_presplit",
-    "rayaccel.bvh.step_reinsert",
-    "rayaccel.bvh.step_rotate",
-    "rayaccel.bvh.step_treelet",
-    "rayaccel.bvh.traverse_stack",
-    "rayaccel.bvh.traverse_skip",
-    "rayaccel.bvh.traverse_parent_link",
-    "rayaccel.bvh.traverse_bitstack",
-    "rayaccel.bvh.traverse_restart_trail",
-    "rayaccel.bvh.traverse_perfect_hash",
-    "rayaccel.bvh.traverse_wide",
+    "rayaccel.bvh.builders.binned_sah",
+    "rayaccel.bvh.builders.insertion",
+    "rayaccel.bvh.builders.lbvh",
+    "rayaccel.bvh.builders.ploc",
+    "rayaccel.bvh.builders.sbvh",
+    "rayaccel.bvh.builders.sweep_sah",
+    "rayaccel.bvh.steps.collapse",
+    "rayaccel.bvh.steps.presplit",
+    "rayaccel.bvh.steps.reinsert",
+    "rayaccel.bvh.steps.rotate",
+    "rayaccel.bvh.steps.treelet",
+    "rayaccel.bvh.traverse.stack",
+    "rayaccel.bvh.traverse.skip",
+    "rayaccel.bvh.traverse.parent_link",
+    "rayaccel.bvh.traverse.bitstack",
+    "rayaccel.bvh.traverse.restart_trail",
+    "rayaccel.bvh.traverse.perfect_hash",
+    "rayaccel.bvh.traverse.wide",
 )
 
 #: Composed build keys enumerated beside the plain builders: the eight configurations of

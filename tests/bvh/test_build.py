@@ -10,7 +10,7 @@ import pytest
 import rayaccel
 import reference
 from rayaccel import registry
-from rayaccel.bvh.layout import MAX_DEPTH, Bvh2, pack_bvh2
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2, pack_bvh2
 from rayaccel.errors import InvalidInputError, StructureInvariantError
 
 BUILDERS = [pytest.param(k, id=k) for k in registry.keys("builder", "bvh2")]

@@ -8,10 +8,10 @@ import pytest
 
 import rayaccel
 import reference
-from rayaccel.bvh._build_common import primitive_bounds
-from rayaccel.bvh.build_insertion import InsertionOptions, build_insertion
-from rayaccel.bvh.layout import MAX_DEPTH
-from rayaccel.bvh.refs import BuildRefs
+from rayaccel.bvh.builders.common import primitive_bounds
+from rayaccel.bvh.builders.insertion import InsertionOptions, build_insertion
+from rayaccel.bvh.builders.refs import BuildRefs
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
 from rayaccel.errors import InvalidInputError
 
 ORDERS = ["random", "morton", "input"]

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 import rayaccel
-from rayaccel.bvh.build_lbvh import LbvhOptions
-from rayaccel.bvh.layout import MAX_DEPTH
-from rayaccel.bvh.morton import morton_codes
-from rayaccel.bvh.radix_sort import radix_sort
+from rayaccel.bvh.builders.lbvh import LbvhOptions
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.morton import morton_codes
+from rayaccel.kernels.radix_sort import radix_sort
 
 
 def _mesh(tri):

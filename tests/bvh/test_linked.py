@@ -1,6 +1,6 @@
 """The parallel refit and emission of a linked tree against a serial Python oracle.
 
-:func:`rayaccel.bvh.linked.linked_to_canonical` splits the tree below a top frontier
+:func:`rayaccel.bvh.layouts.linked_tree.linked_to_canonical` splits the tree below a top frontier
 and works on the subtrees in parallel; its output must be exactly that of the plain
 serial depth-first conversion written out here, for balanced, random and chain-like
 trees (the last triggers the depth guard), on 1 and 2 threads.
@@ -16,10 +16,10 @@ import pytest
 
 from rayaccel._hugepages import empty_huge, full_huge, zeros_huge
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh._build_common import primitive_bounds, triangle_bounds, triangle_ref_rows
-from rayaccel.bvh.layout import MAX_DEPTH
-from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
-from rayaccel.bvh.refit import FRONTIER_SIZE, top_frontier
+from rayaccel.bvh.builders.common import primitive_bounds, triangle_bounds, triangle_ref_rows
+from rayaccel.bvh.builders.refit import FRONTIER_SIZE, top_frontier
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
+from rayaccel.bvh.layouts.linked_tree import LinkedTree, linked_to_canonical
 from rayaccel.kernels.box_grow import grow_box_row
 from rayaccel.scene.procedural import triangle_soup
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import rayaccel
-from rayaccel.bvh.pairs import COUNT_COLUMN, REF_COLUMN, pairs_layout
-from rayaccel.bvh.traverse_stack import packed_layout
+from rayaccel.bvh.layouts.pairs import COUNT_COLUMN, REF_COLUMN, pairs_layout
+from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.rays.batch import RayBatch
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import rayaccel
-from rayaccel.bvh.build_ploc import PlocOptions
+from rayaccel.bvh.builders.ploc import PlocOptions
 from rayaccel.errors import InvalidInputError
 
 

@@ -11,9 +11,9 @@ import pytest
 import rayaccel
 import reference
 from rayaccel import registry
-from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.refs import BuildRefs, remove_leaf_duplicates, triangle_refs
-from rayaccel.bvh.step_presplit import PresplitOptions, presplit
+from rayaccel.bvh.builders.refs import BuildRefs, remove_leaf_duplicates, triangle_refs
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.steps.presplit import PresplitOptions, presplit
 from rayaccel.errors import InvalidInputError
 
 REF_BUILDERS = [v.key for v in registry.variants("builder", "bvh2") if v.takes_refs]

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import rayaccel
-from rayaccel.bvh.linked import linked_to_canonical, to_linked
-from rayaccel.bvh.step_rotate import N_MOVES, RotateOptions, _apply_move, _move_delta
+from rayaccel.bvh.layouts.linked_tree import linked_to_canonical, to_linked
+from rayaccel.bvh.steps.rotate import N_MOVES, RotateOptions, _apply_move, _move_delta
 from rayaccel.errors import InvalidInputError
 
 

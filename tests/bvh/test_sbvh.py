@@ -7,7 +7,7 @@ import pytest
 
 import rayaccel
 import reference
-from rayaccel.bvh.build_sbvh import SbvhOptions
+from rayaccel.bvh.builders.sbvh import SbvhOptions
 from rayaccel.errors import InvalidInputError
 
 

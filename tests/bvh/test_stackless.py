@@ -15,8 +15,8 @@ import pytest
 import rayaccel
 import reference
 from rayaccel import registry
-from rayaccel.bvh.layout import MAX_DEPTH
-from rayaccel.bvh.perfect_hash import build_perfect_hash
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
+from rayaccel.bvh.layouts.perfect_hash import build_perfect_hash
 from rayaccel.errors import InvalidInputError, UnknownVariantError
 from rayaccel.rays.batch import RayBatch
 

@@ -8,8 +8,8 @@ import pytest
 
 import rayaccel
 from rayaccel import registry
-from rayaccel.bvh.layout import MAX_DEPTH
-from rayaccel.bvh.step_reinsert import ReinsertOptions
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
+from rayaccel.bvh.steps.reinsert import ReinsertOptions
 from rayaccel.errors import InvalidInputError
 
 BUILDERS = [pytest.param(k, id=k) for k in registry.keys("builder", "bvh2")]

@@ -12,7 +12,7 @@ import pytest
 import rayaccel
 import reference
 from rayaccel import registry
-from rayaccel.bvh.step_treelet import TreeletOptions, treelet
+from rayaccel.bvh.steps.treelet import TreeletOptions, treelet
 from rayaccel.errors import InvalidInputError
 
 BUILDERS = [pytest.param(k, id=k) for k in registry.keys("builder", "bvh2")]

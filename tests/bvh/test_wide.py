@@ -14,9 +14,9 @@ import pytest
 import rayaccel
 import reference
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layout import MAX_DEPTH
-from rayaccel.bvh.traverse_stack import packed_layout
-from rayaccel.bvh.wide import WIDTHS, count_column, ref_column, wide_layout
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
+from rayaccel.bvh.layouts.wide import WIDTHS, count_column, ref_column, wide_layout
+from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb import ray_box_entry
 from rayaccel.kernels.aabb_wide import slab_test2, slab_test4, slab_test8

@@ -25,7 +25,7 @@ import numpy as np
 from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
-from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
 from rayaccel.dtypes import REAL
 
 

@@ -2,8 +2,8 @@
 
 The robust slab test of :mod:`rayaccel.kernels.aabb` (Williams et al. 2005 plane
 selection, Ize 2013 2-ulp exit widening, NaN never tightening a bound) applied to the
-child boxes of a wide BVH row (:mod:`rayaccel.bvh.wide`) or of a binary row of the
-pairs layout (:mod:`rayaccel.bvh.pairs`, two lanes), whose planes are stored
+child boxes of a wide BVH row (:mod:`rayaccel.bvh.layouts.wide`) or of a binary row of the
+pairs layout (:mod:`rayaccel.bvh.layouts.pairs`, two lanes), whose planes are stored
 structure-of-arrays: the children's ``lo.x`` side by side, then their ``hi.x``, and
 so on. Each slab is one ``<N x float>`` load, subtract and multiply; the bounds are
 merged with ordered compares and selects, which is exactly the scalar test's

@@ -1,6 +1,6 @@
 """Grow a stored box by another box with one 8-lane vector min/max.
 
-Binning builders (:mod:`rayaccel.bvh.build_binned_sah`, :mod:`rayaccel.bvh.build_sbvh`)
+Binning builders (:mod:`rayaccel.bvh.builders.binned_sah`, :mod:`rayaccel.bvh.builders.sbvh`)
 add every reference's box to a bin's box, once per axis and level: three mins and three
 maxes into memory, repeated for consecutive references that often land in the same bin.
 Both the reference rows and the bin boxes are stored as 8 floats, ``[lo.x, lo.y, lo.z,

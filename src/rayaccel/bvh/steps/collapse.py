@@ -7,7 +7,7 @@ more than the subtree: ``C_prim·A(n)·N(n) <= C_inner·A(n) + cost(left) + cost
 restructuring). Useful after steps that work on one-primitive leaves and after
 builders whose own leaves are small. Leaves are never split, so the tree's SAH cost
 can only go down. Cost O(n), one refit pass and one emission pass
-(:mod:`rayaccel.bvh.linked`).
+(:mod:`rayaccel.bvh.layouts.linked_tree`).
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from rayaccel._variant import register
-from rayaccel.bvh.build_lbvh import check_leaf_costs
-from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import collapsed_to_canonical, to_linked
+from rayaccel.bvh.builders.lbvh import check_leaf_costs
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.layouts.linked_tree import collapsed_to_canonical, to_linked
 from rayaccel.scene.mesh import TriangleMesh
 
 

@@ -10,7 +10,7 @@ backtracking, no per-ray state but the index; the price is a fixed child order
 far child with a hit found in the near one as early as an ordered traversal does.
 It is the stackless baseline without ordering.
 
-Layout: :class:`rayaccel.bvh.links.SkipBvh2` (32 bytes per node), derived once per
+Layout: :class:`rayaccel.bvh.layouts.stackless_links.SkipBvh2` (32 bytes per node), derived once per
 accel and cached under ``"bvh2.skip"``; leaf tables and triangles are shared with
 the packed layout of ``bvh2.stack``.
 
@@ -37,10 +37,10 @@ from numba import prange
 from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh.layout import LEAF_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
-from rayaccel.bvh.links import SKIP_ROW_BYTES, skip_layout
-from rayaccel.bvh.traversal_steps import INF32, box_entry, intersect_leaf, ray_prologue
-from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.bvh.layouts.bvh2 import LEAF_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.layouts.stackless_links import SKIP_ROW_BYTES, skip_layout
+from rayaccel.bvh.traverse.building_blocks import INF32, box_entry, intersect_leaf, ray_prologue
+from rayaccel.bvh.traverse.stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh

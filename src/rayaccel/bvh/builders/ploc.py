@@ -22,7 +22,7 @@ collapsing, max leaf size 8). Defaults follow the authors' code: ``r = 25``, 60-
 (Devillers thesis: 26.8 vs 26.4 primary Mrays/s). Cost O(n·r) per iteration, with
 the cluster count shrinking geometrically.
 
-Given ``refs`` (:class:`~rayaccel.bvh.refs.BuildRefs`, e.g. from ``+presplit``),
+Given ``refs`` (:class:`~rayaccel.bvh.builders.refs.BuildRefs`, e.g. from ``+presplit``),
 it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
@@ -37,11 +37,11 @@ from numba import prange
 from rayaccel._hugepages import empty_huge
 from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import reference_boxes
-from rayaccel.bvh.build_lbvh import check_leaf_costs, sorted_leaf_tree
-from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import collapsed_to_canonical
-from rayaccel.bvh.refs import BuildRefs
+from rayaccel.bvh.builders.common import reference_boxes
+from rayaccel.bvh.builders.lbvh import check_leaf_costs, sorted_leaf_tree
+from rayaccel.bvh.builders.refs import BuildRefs
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.layouts.linked_tree import collapsed_to_canonical
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 

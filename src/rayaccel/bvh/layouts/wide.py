@@ -12,7 +12,7 @@ Derivation from the canonical binary tree (Wald et al. 2008 §3.1): a wide node 
 from a binary inner node's two children and repeatedly replaces the inner child with
 the largest surface area by its two children until it has ``width`` children or only
 leaves remain. Leaves are the binary tree's leaves, unchanged, so the leaf tables and
-the triangle rows of :class:`~rayaccel.bvh.layout.PackedBvh2` are shared. Rows are
+the triangle rows of :class:`~rayaccel.bvh.layouts.bvh2.PackedBvh2` are shared. Rows are
 numbered breadth-first with the children of a row adjacent.
 
 Row layout for width ``W`` (``8·W`` float32: 128 bytes for W = 4, 256 for W = 8): columns
@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layout import CACHE_LINE, PackedBvh2, aligned_zeros
+from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, PackedBvh2, aligned_zeros
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
 

@@ -1,7 +1,7 @@
 """Ordered stack traversal of a binary BVH (Aila & Laine 2009 "while-while" loop).
 
 Each step reads one inner row of the pairs layout (both children's boxes side by
-side, 64 bytes, :mod:`rayaccel.bvh.pairs`), tests the two boxes against
+side, 64 bytes, :mod:`rayaccel.bvh.layouts.pairs`), tests the two boxes against
 ``[tmin, t_closest]`` with one 2-lane vector slab test
 (:data:`rayaccel.kernels.aabb_wide.slab_test2`) and descends into the nearer child
 by entry distance, pushing the farther one with its entry distance; ties go to
@@ -48,7 +48,7 @@ from numba import prange
 from rayaccel._jit import cpu_kernel, keep_branch, prefetch_row
 from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh.layout import (
+from rayaccel.bvh.layouts.bvh2 import (
     PACKED_ROW_BYTES,
     REF_BYTES,
     STACK_ENTRY_BYTES,
@@ -59,8 +59,8 @@ from rayaccel.bvh.layout import (
     memoised_layout,
     pack_bvh2,
 )
-from rayaccel.bvh.pairs import COUNT_COLUMN, REF_COLUMN, PairsBvh2, pairs_layout
-from rayaccel.bvh.traversal_steps import (
+from rayaccel.bvh.layouts.pairs import COUNT_COLUMN, REF_COLUMN, PairsBvh2, pairs_layout
+from rayaccel.bvh.traverse.building_blocks import (
     intersect_leaf,
     ray_prologue,
     root_entry,

@@ -13,9 +13,9 @@ starting point for references made by hand).
 
 Pieces of one triangle may end up in the same leaf. Karras & Aila remove such
 duplicates after building; :func:`remove_leaf_duplicates` does it, and the canonical
-conversions (:mod:`rayaccel.bvh.linked`, :mod:`rayaccel.bvh._build_common`) apply it
+conversions (:mod:`rayaccel.bvh.layouts.linked_tree`, :mod:`rayaccel.bvh.builders.common`) apply it
 whenever a tree has more references than primitives, so no leaf of a canonical
-:class:`~rayaccel.bvh.layout.Bvh2` names a triangle twice. Leaf boxes keep the union
+:class:`~rayaccel.bvh.layouts.bvh2.Bvh2` names a triangle twice. Leaf boxes keep the union
 of all their references (the kept reference's triangle part may extend into the
 removed one's box). Cost O(n_refs · leaf size), parallel over leaves.
 """
@@ -28,7 +28,7 @@ import numpy as np
 from numba import prange
 
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layout import Bvh2
+from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh

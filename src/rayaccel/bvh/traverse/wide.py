@@ -4,14 +4,14 @@ Wald, Benthin, Boulos 2008, "Getting Rid of Packets — Efficient SIMD Single-Ra
 Traversal using Multi-branching BVHs"; Dammertz, Hanika, Keller 2008, "Shallow
 Bounding Volume Hierarchies for Fast SIMD Ray Tracing of Incoherent Rays". The
 binary tree any ``bvh2`` builder made is collapsed once per accel into rows of
-``width`` = 8 (default) or 4 children (:mod:`rayaccel.bvh.wide`, cached as
+``width`` = 8 (default) or 4 children (:mod:`rayaccel.bvh.layouts.wide`, cached as
 ``"bvh2.wide4"`` / ``"bvh2.wide8"``); a traversal step tests the child boxes of one
 row as the lanes of one vector slab test (:mod:`rayaccel.kernels.aabb_wide`), then
 visits the hit children nearest first: the nearest becomes the next node, the
 others are pushed farthest first with their entry distances. As in ``bvh2.stack``
 popped entries beyond the closest hit are dropped unfetched, and leaves, the
 triangle test, the box test's robustness (Ize 2013 2-ulp exit widening) and the
-culling pad are the same (:mod:`rayaccel.bvh.traversal_steps`).
+culling pad are the same (:mod:`rayaccel.bvh.traverse.building_blocks`).
 
 Results: the same closest ``t`` as ``bvh2.stack`` on every ray (every box that could
 hold a nearer hit is visited with the same test); where two triangles are hit at
@@ -38,7 +38,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 from rayaccel._jit import cpu_kernel, keep_branch, prefetch_row
 from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh.layout import (
+from rayaccel.bvh.layouts.bvh2 import (
     LEAF_BYTES,
     MAX_DEPTH,
     REF_BYTES,
@@ -47,13 +47,20 @@ from rayaccel.bvh.layout import (
     Bvh2,
     memoised_layout,
 )
-from rayaccel.bvh.traversal_steps import (
+from rayaccel.bvh.layouts.wide import (
+    WIDTHS,
+    WideBvh,
+    count_column,
+    ref_column,
+    row_floats,
+    wide_layout,
+)
+from rayaccel.bvh.traverse.building_blocks import (
     intersect_leaf,
     ray_prologue,
     root_entry,
 )
-from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
-from rayaccel.bvh.wide import WIDTHS, WideBvh, count_column, ref_column, row_floats, wide_layout
+from rayaccel.bvh.traverse.stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb_wide import slab_test4, slab_test8
@@ -297,7 +304,7 @@ def trace_bvh2_wide(
 ) -> HitBatch:
     """Trace rays through the wide form of a binary BVH (see the module docstring).
 
-    Parameters and results as :func:`rayaccel.bvh.traverse_stack.trace_bvh2_stack`; the
+    Parameters and results as :func:`rayaccel.bvh.traverse.stack.trace_bvh2_stack`; the
     derived wide rows are cached under ``"bvh2.wide4"`` or ``"bvh2.wide8"``.
     """
     width = (options or WideOptions()).width

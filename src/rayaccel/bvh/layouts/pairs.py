@@ -18,7 +18,7 @@ column  content (float32 row of 16; columns 12–15 are int32)
 ======  =====================================================================
 
 Rows keep the packed layout's depth-first order and the triangle rows are the packed
-layout's (:class:`~rayaccel.bvh.layout.PackedBvh2`), so the derivation is a column
+layout's (:class:`~rayaccel.bvh.layouts.bvh2.PackedBvh2`), so the derivation is a column
 permutation plus two leaf-table lookups per row.
 """
 
@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from rayaccel.bvh.layout import CACHE_LINE, PackedBvh2, aligned_zeros
+from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, PackedBvh2, aligned_zeros
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 
 #: Column of child ``c``'s reference and of its leaf count.

@@ -9,7 +9,7 @@ its effect can be measured:
    path node was postponed. Backtracking goes to the deepest postponed node, ``n =
    ctz(trail)`` levels up, the ``n``-th uncle: ``key = (key >> n) ^ 1``, ``trail =
    (trail >> n) ^ 1``: constant time, whatever ``n``.
-2. *Perfect hash* (``hash``; :mod:`rayaccel.bvh.perfect_hash`): the key of the
+2. *Perfect hash* (``hash``; :mod:`rayaccel.bvh.layouts.perfect_hash`): the key of the
    target's parent is mapped to its packed row in one lookup (the target is a child
    slot of that row, ``key & 1``). Off: climb ``n`` parent links instead (O(n)).
 3. *Fewer lookups* (``uncle_refs`` and ``register``): the spare room of each packed
@@ -55,7 +55,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 from rayaccel._jit import cpu_kernel, prefetch_row
 from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh.layout import (
+from rayaccel.bvh.layouts.bvh2 import (
     CACHE_LINE,
     LEAF_BYTES,
     PACKED_ROW_BYTES,
@@ -66,9 +66,9 @@ from rayaccel.bvh.layout import (
     aligned_zeros,
     memoised_layout,
 )
-from rayaccel.bvh.links import LINK_BYTES, link_packed
-from rayaccel.bvh.perfect_hash import ENTRY_BYTES, PerfectHash, build_perfect_hash
-from rayaccel.bvh.traversal_steps import (
+from rayaccel.bvh.layouts.perfect_hash import ENTRY_BYTES, PerfectHash, build_perfect_hash
+from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, link_packed
+from rayaccel.bvh.traverse.building_blocks import (
     INF32,
     box_entry,
     box_exit,
@@ -78,7 +78,7 @@ from rayaccel.bvh.traversal_steps import (
     ray_prologue,
     root_entry,
 )
-from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.bvh.traverse.stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.dtypes import REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError

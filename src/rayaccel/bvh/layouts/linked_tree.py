@@ -6,9 +6,9 @@ rotations, treelets) edit a tree whose nodes name their children explicitly:
 a range ``first:first + count`` into a reference array. Node ids carry no order.
 
 :func:`linked_to_canonical` turns such a tree into a canonical
-:class:`~rayaccel.bvh.layout.Bvh2` in three passes:
+:class:`~rayaccel.bvh.layouts.bvh2.Bvh2` in three passes:
 
-1. A post-order refit (:func:`rayaccel.bvh.refit.refit_collapse`) computes every
+1. A post-order refit (:func:`rayaccel.bvh.builders.refit.refit_collapse`) computes every
    inner box as the union of its children, the subtree SAH cost and, optionally,
    the SAH-based leaf collapsing of Meister & Bittner 2018 §4.4: a subtree of at
    most ``max_leaf_size`` primitives becomes one leaf when
@@ -22,14 +22,14 @@ a range ``first:first + count`` into a reference array. Node ids carry no order.
    subtree always fits; ordinary trees are never touched.
 
 Passes 1 and 2 run in parallel over the subtrees below a top frontier
-(:func:`rayaccel.bvh.refit.top_frontier`); since a node's descendants take one
+(:func:`rayaccel.bvh.builders.refit.top_frontier`); since a node's descendants take one
 contiguous block of ids and references in the depth-first numbering, the serial walk
 over the top levels reserves each subtree's block and the output is exactly the
 serial one, whatever the thread count.
 
 A tree with more references than primitives (spatial splits, pre-split input) may
 collapse two pieces of one triangle into one leaf; the copies are then dropped
-(:func:`rayaccel.bvh.refs.remove_leaf_duplicates`, Karras & Aila 2013 §5.9).
+(:func:`rayaccel.bvh.builders.refs.remove_leaf_duplicates`, Karras & Aila 2013 §5.9).
 """
 
 from __future__ import annotations
@@ -43,10 +43,10 @@ from numba import prange
 from rayaccel._hugepages import empty_huge, zeros_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh._build_common import ceil_log2
-from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
-from rayaccel.bvh.refit import FRONTIER_SIZE, push, refit_collapse, top_frontier
-from rayaccel.bvh.refs import remove_leaf_duplicates
+from rayaccel.bvh.builders.common import ceil_log2
+from rayaccel.bvh.builders.refit import FRONTIER_SIZE, push, refit_collapse, top_frontier
+from rayaccel.bvh.builders.refs import remove_leaf_duplicates
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 
 
@@ -359,7 +359,7 @@ def refitted_to_canonical(
 ) -> Bvh2:
     """Emit the canonical :class:`Bvh2` of a refitted linked tree (passes 2 and 3).
 
-    The arrays are :func:`rayaccel.bvh.refit.refit_collapse`'s, or those of a builder
+    The arrays are :func:`rayaccel.bvh.builders.refit.refit_collapse`'s, or those of a builder
     that refits and collapses on its own (the Apetrei emission of ``bvh2.lbvh``).
     """
     lo, hi, first, count, prim = _emit_kernel(

@@ -22,7 +22,7 @@ duplicates by index). Two ways to find that radix tree, giving the same tree:
   3. binary search for the split ``γ``; children are leaf ``γ`` / inner ``γ`` and leaf
      ``γ+1`` / inner ``γ+1``.
 
-  Boxes then come from one bottom-up refit (:mod:`rayaccel.bvh.refit`), which also
+  Boxes then come from one bottom-up refit (:mod:`rayaccel.bvh.builders.refit`), which also
   collapses subtrees into leaves of up to ``max_leaf_size`` primitives where the SAH
   prefers a leaf (as the PLOC authors do).
 
@@ -31,10 +31,10 @@ Karras emission's time (it replaces the range searches, the separate leaf-row pa
 the refit's post-order walks). Degenerate input (all centroids equal) gives equal
 keys, split by index: a balanced tree. Keys with 63 bits can nest deeper than
 ``MAX_DEPTH`` on very skewed scenes; the canonical conversion rebalances such
-subtrees (:mod:`rayaccel.bvh.linked`). Cost O(n) after an O(n) radix sort; the
+subtrees (:mod:`rayaccel.bvh.layouts.linked_tree`). Cost O(n) after an O(n) radix sort; the
 fastest builder, with the lowest quality.
 
-Given ``refs`` (:class:`~rayaccel.bvh.refs.BuildRefs`, e.g. from ``+presplit``),
+Given ``refs`` (:class:`~rayaccel.bvh.builders.refs.BuildRefs`, e.g. from ``+presplit``),
 it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
@@ -48,14 +48,18 @@ from numba import prange
 from rayaccel._hugepages import empty_huge, full_huge
 from rayaccel._jit import atomic_exchange, cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import reference_boxes
-from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import LinkedTree, collapsed_to_canonical, refitted_to_canonical
-from rayaccel.bvh.morton import count_leading_zeros, morton_codes
-from rayaccel.bvh.radix_sort import radix_sort
-from rayaccel.bvh.refit import collapse_node
-from rayaccel.bvh.refs import BuildRefs
+from rayaccel.bvh.builders.common import reference_boxes
+from rayaccel.bvh.builders.refit import collapse_node
+from rayaccel.bvh.builders.refs import BuildRefs
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.layouts.linked_tree import (
+    LinkedTree,
+    collapsed_to_canonical,
+    refitted_to_canonical,
+)
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.morton import count_leading_zeros, morton_codes
+from rayaccel.kernels.radix_sort import radix_sort
 from rayaccel.scene.mesh import TriangleMesh
 
 #: Hierarchy emissions of :class:`LbvhOptions` (they give the same tree).
@@ -191,14 +195,14 @@ def apetrei_refit_collapse(
     keys ``i`` and ``i + 1``). The child writes its link in that parent and exchanges
     its far range end with the parent's slot (an atomic exchange): the first child
     to arrive stops; the second gets its sibling's end, so it knows the parent's
-    range, and finishes the parent with :func:`rayaccel.bvh.refit.collapse_node`
+    range, and finishes the parent with :func:`rayaccel.bvh.builders.refit.collapse_node`
     (box, SAH cost, collapse decision), whose inputs its sibling's thread wrote before
     its exchange. Every node gets the arithmetic of a serial post-order walk, so the
     result is the same for any thread count.
 
     Writes every row of the linked arrays (leaf ``k`` is node ``n - 1 + k``, holding
     reference ``order[k]``). Returns ``(root, as_leaf, height, n_eff, n_prim)`` as
-    :func:`rayaccel.bvh.refit.refit_collapse` does (``n >= 2``).
+    :func:`rayaccel.bvh.builders.refit.refit_collapse` does (``n >= 2``).
     """
     n = codes.shape[0]
     n_inner = n - 1

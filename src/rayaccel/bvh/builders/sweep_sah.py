@@ -14,7 +14,7 @@ a leaf but too many primitives for one, or a depth that must stay bounded) are c
 at the median of the longest axis's order, so the depth stays below ``MAX_DEPTH``.
 Serial; use ``bvh2.binned_sah`` for speed.
 
-Given ``refs`` (:class:`~rayaccel.bvh.refs.BuildRefs`, e.g. from ``+presplit``),
+Given ``refs`` (:class:`~rayaccel.bvh.builders.refs.BuildRefs`, e.g. from ``+presplit``),
 it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
@@ -26,9 +26,9 @@ import numpy as np
 
 from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import compact_to_canonical, depth_forces_median, primitive_bounds
-from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
-from rayaccel.bvh.refs import BuildRefs, check_refs
+from rayaccel.bvh.builders.common import compact_to_canonical, depth_forces_median, primitive_bounds
+from rayaccel.bvh.builders.refs import BuildRefs, check_refs
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
 from rayaccel.dtypes import IntArray
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh

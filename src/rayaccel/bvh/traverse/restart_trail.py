@@ -46,7 +46,7 @@ from numba import prange
 from rayaccel._jit import cpu_kernel, prefetch_row
 from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh.layout import (
+from rayaccel.bvh.layouts.bvh2 import (
     LEAF_BYTES,
     PACKED_ROW_BYTES,
     REF_BYTES,
@@ -55,7 +55,7 @@ from rayaccel.bvh.layout import (
     TRIANGLE_BYTES,
     Bvh2,
 )
-from rayaccel.bvh.traversal_steps import (
+from rayaccel.bvh.traverse.building_blocks import (
     INF32,
     box_entry,
     check_trail_depth,
@@ -64,7 +64,7 @@ from rayaccel.bvh.traversal_steps import (
     ray_prologue,
     root_entry,
 )
-from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.bvh.traverse.stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.dtypes import FloatArray, IntArray
 from rayaccel.errors import InvalidInputError

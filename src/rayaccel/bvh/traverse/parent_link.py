@@ -14,7 +14,7 @@ is a three-state machine that decides the next node from where it came from:
 Per-ray state is O(1) (node, slot and state), backtracking costs O(depth) parent
 steps. Hapala et al. use a ray-independent child order per node (the split axis and
 the ray's sign), because the order must be recomputable on the way up. We re-derive
-the *distance* order instead: in the packed layout (:mod:`rayaccel.bvh.layout`) both
+the *distance* order instead: in the packed layout (:mod:`rayaccel.bvh.layouts.bvh2`) both
 child boxes sit in the parent's 64-byte row, so coming back up costs one row fetch
 and two box tests, and the walk visits exactly the nodes of ``bvh2.stack`` in the
 same order, giving bit-identical hits (same ``t`` and primitive, same any-hit).
@@ -22,8 +22,9 @@ Entry distances used for ordering are computed against ``[tmin, inf]``; a child 
 entered only if its entry is also within the current ``[tmin, t_hit]`` (padded as in
 ``bvh2.stack``), which is exactly the stack's pop test.
 
-Layout: the packed rows of ``bvh2.stack`` plus up-links (:class:`rayaccel.bvh.links.
-LinkedBvh2`, 4 bytes per node), derived once per accel and cached.
+Layout: the packed rows of ``bvh2.stack`` plus up-links
+(:class:`~rayaccel.bvh.layouts.stackless_links.LinkedBvh2`, 4 bytes per node), derived
+once per accel and cached.
 
 Counters: ``steps`` loop iterations, ``nodes`` nodes entered (equals ``bvh2.stack``),
 ``box_tests`` (two per row visit, down or up), ``prim_tests``, ``backtracks`` parent
@@ -43,16 +44,16 @@ from numba import prange
 from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh.layout import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
-from rayaccel.bvh.links import LINK_BYTES, linked_layout
-from rayaccel.bvh.traversal_steps import (
+from rayaccel.bvh.layouts.bvh2 import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, linked_layout
+from rayaccel.bvh.traverse.building_blocks import (
     INF32,
     box_entry,
     intersect_leaf,
     ray_prologue,
     root_entry,
 )
-from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.bvh.traverse.stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh

@@ -20,7 +20,7 @@ from numba import prange
 
 from rayaccel._hugepages import zeros_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
-from rayaccel.bvh.layout import MAX_DEPTH
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
 
 
 def _half_area_py(lo, hi, i):

@@ -10,7 +10,7 @@ leaf next to X costs ``C_I(X) + A(X ∪ B)``, where B is the leaf's box and the
 
 - ``search="branch_and_bound"`` (default): the optimal sibling for the induced cost,
   by the best-first search of Bittner et al. 2013 (shared with ``+reinsert``,
-  :func:`rayaccel.bvh.step_reinsert.find_best_sibling`).
+  :func:`rayaccel.bvh.steps.reinsert.find_best_sibling`).
 - ``search="greedy"``: Goldsmith & Salmon's descent. From the root, follow the child
   whose area grows least (ties: the smaller merged box, then left), evaluate the
   sibling cost at every node on the path and keep the cheapest; stop at a leaf or
@@ -29,7 +29,7 @@ every prefix of the order a sample of the whole scene, so the top levels split s
 evenly: it gives the lowest SAH of the three orders on every scene we measured.
 ``"morton"`` inserts along a Z-curve: consecutive searches touch the same nodes, so
 it builds several times faster on large scenes, at a higher SAH. Trees are finished
-by the SAH leaf collapse of :func:`rayaccel.bvh.linked.linked_to_canonical`, whose
+by the SAH leaf collapse of :func:`rayaccel.bvh.layouts.linked_tree.linked_to_canonical`, whose
 depth guard rebalances any subtree deeper than ``MAX_DEPTH`` (chains from ties: all
 primitives identical). Serial and deterministic for a given seed.
 """
@@ -42,16 +42,16 @@ import numpy as np
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import reference_boxes
-from rayaccel.bvh.build_lbvh import check_leaf_costs
-from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import LinkedTree, collapsed_to_canonical
-from rayaccel.bvh.morton import morton_codes
-from rayaccel.bvh.radix_sort import radix_sort
-from rayaccel.bvh.refit import half_area
-from rayaccel.bvh.refs import BuildRefs
-from rayaccel.bvh.step_reinsert import attach_sibling, find_best_sibling, union_area
+from rayaccel.bvh.builders.common import reference_boxes
+from rayaccel.bvh.builders.lbvh import check_leaf_costs
+from rayaccel.bvh.builders.refit import half_area
+from rayaccel.bvh.builders.refs import BuildRefs
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.layouts.linked_tree import LinkedTree, collapsed_to_canonical
+from rayaccel.bvh.steps.reinsert import attach_sibling, find_best_sibling, union_area
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.morton import morton_codes
+from rayaccel.kernels.radix_sort import radix_sort
 from rayaccel.scene.mesh import TriangleMesh
 
 ORDERS = ("input", "random", "morton")

@@ -20,7 +20,7 @@ not depend on the thread count); the remaining subtrees are built concurrently w
 ``prange``, each into a node block reserved by a prefix sum. The pool is then
 compacted depth-first into the canonical layout. Cost O(n log n).
 
-Given ``refs`` (:class:`~rayaccel.bvh.refs.BuildRefs`, e.g. from ``+presplit``),
+Given ``refs`` (:class:`~rayaccel.bvh.builders.refs.BuildRefs`, e.g. from ``+presplit``),
 it builds over those boxes instead of one per triangle; leaves name mesh triangles.
 """
 
@@ -35,13 +35,13 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh._build_common import (
+from rayaccel.bvh.builders.common import (
     compact_to_canonical,
     depth_forces_median,
     triangle_ref_rows,
 )
-from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
-from rayaccel.bvh.refs import BuildRefs, check_refs
+from rayaccel.bvh.builders.refs import BuildRefs, check_refs
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.box_grow import grow_bounds, grow_box_row
 from rayaccel.scene.mesh import TriangleMesh
@@ -375,7 +375,7 @@ def _ref_range_bounds(refs, begin, end, out):
 def ref_rows(refs: BuildRefs) -> np.ndarray:
     """Return the ``(m, 8)`` float32 reference rows of ``refs``.
 
-    Same row layout as :func:`~rayaccel.bvh._build_common.triangle_ref_rows`.
+    Same row layout as :func:`~rayaccel.bvh.builders.common.triangle_ref_rows`.
     """
     rows = np.zeros((refs.n_refs, 8), dtype=np.float32)
     rows[:, 0:3] = refs.lo

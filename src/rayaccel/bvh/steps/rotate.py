@@ -24,7 +24,7 @@ Serial and deterministic (annealing draws from numba's generator seeded with
 ``seed`` inside the kernel). A pass costs O(n). Kensler reports better SAH and
 up to ~15% faster rendering in architectural scenes; the Devillers thesis finds it
 about two orders of magnitude slower than reinsertion (``+reinsert``) for similar
-quality. The depth guard of :func:`rayaccel.bvh.linked.linked_to_canonical` keeps the
+quality. The depth guard of :func:`rayaccel.bvh.layouts.linked_tree.linked_to_canonical` keeps the
 result within ``MAX_DEPTH``; should it rebalance (raising the cost), the input tree
 is returned instead.
 """
@@ -37,10 +37,10 @@ import numpy as np
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import linked_to_canonical, to_linked
-from rayaccel.bvh.refit import half_area
-from rayaccel.bvh.step_reinsert import union_area
+from rayaccel.bvh.builders.refit import half_area
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.layouts.linked_tree import linked_to_canonical, to_linked
+from rayaccel.bvh.steps.reinsert import union_area
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 

@@ -16,8 +16,8 @@ Before entering the pending sibling its box is re-tested against the current
 ``bvh2.stack``, bit for bit. State per ray: one int64 (depth <= 62) and the current
 node; backtracking costs O(depth) parent steps.
 
-Layout: the packed rows of ``bvh2.stack`` plus up-links (:class:`rayaccel.bvh.links.
-LinkedBvh2`), derived once per accel and cached.
+Layout: the packed rows of ``bvh2.stack`` plus up-links
+(:class:`~rayaccel.bvh.layouts.stackless_links.LinkedBvh2`), derived once per accel and cached.
 
 Counters: ``steps`` iterations, ``nodes`` nodes entered (equals ``bvh2.stack``),
 ``box_tests``, ``prim_tests``, ``backtracks`` parent steps climbed, the histogram of
@@ -37,9 +37,9 @@ from numba import prange
 from rayaccel._jit import cpu_kernel, prefetch_row
 from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh.layout import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
-from rayaccel.bvh.links import LINK_BYTES, linked_layout
-from rayaccel.bvh.traversal_steps import (
+from rayaccel.bvh.layouts.bvh2 import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, linked_layout
+from rayaccel.bvh.traverse.building_blocks import (
     INF32,
     box_entry,
     check_trail_depth,
@@ -48,7 +48,7 @@ from rayaccel.bvh.traversal_steps import (
     ray_prologue,
     root_entry,
 )
-from rayaccel.bvh.traverse_stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.bvh.traverse.stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
 from rayaccel.counters import Counter
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh

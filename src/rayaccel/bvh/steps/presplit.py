@@ -2,7 +2,7 @@
 
 Large or long diagonal triangles have boxes much bigger than themselves, and one such
 box inflates every node above it. Pre-splitting hands the builder several smaller
-boxes per such triangle instead (:class:`~rayaccel.bvh.refs.BuildRefs`), each
+boxes per such triangle instead (:class:`~rayaccel.bvh.builders.refs.BuildRefs`), each
 naming the whole triangle: traversal still intersects the original triangle, so hits
 are exact, while leaves get tighter. Unlike SBVH (Stich et al. 2009) the splits are
 decided before and independently of the tree, so any builder can use them
@@ -36,7 +36,7 @@ remaining count is shared between the halves in proportion to their longest exte
 Both methods run in parallel over chunks of triangles in two passes (count the
 pieces, then write them at prefix-summed offsets), so the output does not depend on
 the thread count. Pieces of one triangle that land in the same leaf are merged after
-building (Karras & Aila §5.9; :func:`rayaccel.bvh.refs.remove_leaf_duplicates`).
+building (Karras & Aila §5.9; :func:`rayaccel.bvh.builders.refs.remove_leaf_duplicates`).
 """
 
 from __future__ import annotations
@@ -49,8 +49,8 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh.build_sbvh import _split_reference
-from rayaccel.bvh.refs import BuildRefs
+from rayaccel.bvh.builders.refs import BuildRefs
+from rayaccel.bvh.builders.sbvh import _split_reference
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh

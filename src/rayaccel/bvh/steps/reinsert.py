@@ -32,9 +32,9 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import linked_to_canonical, to_linked
-from rayaccel.bvh.refit import refit_up
+from rayaccel.bvh.builders.refit import refit_up
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.layouts.linked_tree import linked_to_canonical, to_linked
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 

@@ -28,7 +28,7 @@ with fewer than γ references are not treelet roots; the pass is repeated for a 
 rounds with γ doubled each round (3 rounds from γ = 7: our recollection of the
 paper's schedule, not confirmed against its text). A final pass collapses subtrees into leaves of
 up to ``max_leaf_size`` references where the SAH prefers a leaf
-(:func:`rayaccel.bvh.linked.linked_to_canonical`).
+(:func:`rayaccel.bvh.layouts.linked_tree.linked_to_canonical`).
 
 Multi-reference input leaves. The paper starts from one-primitive leaves. Here every
 input leaf of at most ``max_leaf_size`` references is first split into one-reference
@@ -51,11 +51,11 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh._build_common import triangle_bounds
-from rayaccel.bvh.build_lbvh import check_leaf_costs
-from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import LinkedTree, collapsed_to_canonical
-from rayaccel.bvh.refit import half_area, refit_collapse
+from rayaccel.bvh.builders.common import triangle_bounds
+from rayaccel.bvh.builders.lbvh import check_leaf_costs
+from rayaccel.bvh.builders.refit import half_area, refit_collapse
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.layouts.linked_tree import LinkedTree, collapsed_to_canonical
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -130,7 +130,7 @@ def _split_leaves(node_lo, node_hi, node_first, node_count, tri_lo, tri_hi, prim
     -------
     left, right, first, count : (n_out,) int32
     lo, hi : (n_out, 3) float32
-        Inner boxes are filled in later by :func:`~rayaccel.bvh.refit.refit_collapse`.
+        Inner boxes are filled in later by :func:`~rayaccel.bvh.builders.refit.refit_collapse`.
     """
     n = node_count.shape[0]
     n_out = n + offset[n]
@@ -420,7 +420,7 @@ def split_leaves_linked(
     """Return the linked form of ``bvh`` with leaves of 2..``max_leaf_size`` references split.
 
     Node ids of ``bvh`` keep their meaning (a split leaf becomes the root of its
-    subtree); with ``split=False`` this is :func:`rayaccel.bvh.linked.to_linked`.
+    subtree); with ``split=False`` this is :func:`rayaccel.bvh.layouts.linked_tree.to_linked`.
     """
     count = bvh.node_count
     if split:

@@ -4,7 +4,7 @@ Builders work on a temporary node pool in which every inner node's two children
 are allocated as an adjacent pair, but where parallel subtree builds may leave
 unused slots. :func:`compact_to_canonical` renumbers the reachable nodes in
 depth-first order (root 0, siblings adjacent), which is the canonical
-:class:`~rayaccel.bvh.layout.Bvh2` and keeps a subtree's nodes close in memory.
+:class:`~rayaccel.bvh.layouts.bvh2.Bvh2` and keeps a subtree's nodes close in memory.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from numba import prange
 
 from rayaccel._hugepages import empty_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
-from rayaccel.bvh.layout import MAX_DEPTH, Bvh2
-from rayaccel.bvh.refs import BuildRefs, check_refs, remove_leaf_duplicates
+from rayaccel.bvh.builders.refs import BuildRefs, check_refs, remove_leaf_duplicates
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
 from rayaccel.dtypes import INDEX, REAL, FloatArray
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -209,7 +209,7 @@ def compact_to_canonical(
     Leaves keep their ``first`` offsets into ``prim_index``; a builder whose leaves
     are not in depth-first order of ``prim_index`` must reorder it itself. With more
     references than primitives (pre-split input), a leaf's repeated primitives are
-    dropped (:func:`rayaccel.bvh.refs.remove_leaf_duplicates`).
+    dropped (:func:`rayaccel.bvh.builders.refs.remove_leaf_duplicates`).
     """
     lo, hi, first, count = _compact_kernel(t_lo, t_hi, t_first, t_count, max(n_used, 1))
     bvh = Bvh2(

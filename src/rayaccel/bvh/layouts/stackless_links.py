@@ -1,7 +1,7 @@
 """Layouts derived from the packed BVH2 for the stackless traversals: links and skips.
 
 Parent links (:class:`LinkedBvh2`, Hapala et al. 2011; Áfra & Szirmay-Kalos 2014)
-    The packed layout (:mod:`rayaccel.bvh.layout`) stores each inner node as a
+    The packed layout (:mod:`rayaccel.bvh.layouts.bvh2`) stores each inner node as a
     64-byte row holding its children's boxes and references. A node's box therefore
     lives in its *parent's* row, in slot 0 or 1. The up-link of a node is
     ``parent_row * 2 + slot`` (``-1`` for the root): one int32 per inner row
@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layout import CACHE_LINE, Bvh2, PackedBvh2, aligned_zeros, memoised_layout
+from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, Bvh2, PackedBvh2, aligned_zeros, memoised_layout
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 
 #: Bytes per up-link and per skip row.
@@ -51,7 +51,7 @@ class LinkedArrays(NamedTuple):
 
 @dataclass(frozen=True, slots=True, eq=False)
 class LinkedBvh2:
-    """Up-links over a :class:`~rayaccel.bvh.layout.PackedBvh2` (see the module docstring)."""
+    """Up-links over a :class:`~rayaccel.bvh.layouts.bvh2.PackedBvh2` (see the module docstring)."""
 
     packed: PackedBvh2
     row_up: IntArray

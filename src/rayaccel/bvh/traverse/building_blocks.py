@@ -1,7 +1,7 @@
 """Inline building blocks shared by every ``bvh2`` traversal kernel.
 
 Every stackless traversal of ``bvh2`` must return exactly the hits of the ordered
-stack traversal (``bvh2.stack``, :mod:`rayaccel.bvh.traverse_stack`). They therefore
+stack traversal (``bvh2.stack``, :mod:`rayaccel.bvh.traverse.stack`). They therefore
 share with it, through these helpers, the per-ray set-up (reciprocal direction,
 near/far plane offsets, watertight shear constants, the culling pad of
 :mod:`rayaccel.kernels.aabb`), the two-child box test on a packed 64-byte row and the
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from rayaccel._jit import cpu_inline, keep_branch, next_up_float32
-from rayaccel.bvh.layout import MAX_DEPTH, STACK_SIZE
+from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, STACK_SIZE
 from rayaccel.errors import TraversalOverflowError
 from rayaccel.kernels.aabb import culling_pad, ray_box_entry, ray_box_exit
 from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup

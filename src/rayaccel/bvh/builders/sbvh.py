@@ -46,8 +46,7 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh._build_common import depth_forces_median, triangle_ref_rows
-from rayaccel.bvh.build_binned_sah import (
+from rayaccel.bvh.builders.binned_sah import (
     MAX_BINS,
     _bin_scales,
     _partition,
@@ -56,9 +55,10 @@ from rayaccel.bvh.build_binned_sah import (
     node_bin_count,
     ref_rows,
 )
-from rayaccel.bvh.layout import Bvh2
-from rayaccel.bvh.linked import LinkedTree, linked_to_canonical
-from rayaccel.bvh.refs import BuildRefs, check_refs
+from rayaccel.bvh.builders.common import depth_forces_median, triangle_ref_rows
+from rayaccel.bvh.builders.refs import BuildRefs, check_refs
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.layouts.linked_tree import LinkedTree, linked_to_canonical
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
