@@ -30,6 +30,7 @@ import rayaccel as ra
 from rayaccel.bvh.traverse import stack as traverse_stack
 from rayaccel.rays.bounce import diffuse_rays
 from rayaccel.rays.camera import frame_bounds, from_preset
+from rayaccel.trace.run import run_trace
 
 
 class _StripStats(ast.NodeTransformer):
@@ -99,7 +100,7 @@ def main() -> None:
             for _ in range(args.repeats):
                 for name, kernel_for in kernels.items():
                     start = time.perf_counter()
-                    hit = traverse_stack.run_trace(
+                    hit = run_trace(
                         kernel_for, pairs.arrays(), rays, "closest", name == "stats"
                     )
                     elapsed = time.perf_counter() - start

@@ -34,8 +34,8 @@ TRAVERSAL = "bvh2.stack"
 
 def repeated_batch(rays, seed: int):
     """Return a batch of ``rays.n_rays`` rays made of ``N_CHUNKS`` chunks of ``rays``, tiled."""
-    from rayaccel.bvh.traverse.stack import RAY_CHUNK
     from rayaccel.rays.batch import RayBatch
+    from rayaccel.trace.skeleton import RAY_CHUNK
 
     n = rays.n_rays
     rng = np.random.Generator(np.random.PCG64(seed))

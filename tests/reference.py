@@ -19,17 +19,16 @@ import numpy as np
 from rayaccel._jit import cpu_kernel
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.counters import COUNTER_NAMES
-from rayaccel.kernels.brute_force import QUERY_ANY, QUERY_CLOSEST, brute_force_trace
+from rayaccel.kernels.brute_force import brute_force_trace
 from rayaccel.kernels.triangle import (
     ray_triangle,
     ray_triangle_py,
     ray_triangle_setup,
     ray_triangle_setup_py,
 )
+from rayaccel.queries import QUERIES
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-
-QUERIES = {"closest": QUERY_CLOSEST, "any": QUERY_ANY}
 
 #: The core pairs: every builder with the reference traversal, every traversal on the
 #: default builder's tree. Other pairs carry the ``cross`` mark (run with ``--full``).

@@ -173,7 +173,8 @@ def _kernel_dispatchers():
 
 def test_signature_discipline():
     """Float64, int, Fortran and strided inputs are coerced: one signature per kernel."""
-    from rayaccel.bvh.traverse.stack import PARALLEL_MIN_RAYS, trace_kernel
+    from rayaccel.bvh.traverse.stack import trace_kernel
+    from rayaccel.trace.run import PARALLEL_MIN_RAYS
 
     mesh64 = rayaccel.TriangleMesh(np.asfortranarray(reference.icosphere(2).vertices,
                                                      dtype=np.float64),

@@ -15,6 +15,14 @@ that helper is edited (STYLE §4.3 rule 4). We therefore key the cache folder by
 digest of every rayaccel source file: ``$NUMBA_CACHE_DIR/rayaccel-<digest>`` (or
 ``~/.cache/rayaccel/numba/rayaccel-<digest>`` when ``NUMBA_CACHE_DIR`` is unset).
 Any source change starts a fresh cache; ``rayaccel cache clear`` removes old ones.
+
+Within one cache folder, numba keys a closure's kernels by a pickle of its closure
+cells. A compiled function in a cell pickles with a per-process id, so a kernel
+factory that captures one (the shared traversal skeleton of :mod:`rayaccel.trace`
+captures each traversal's per-ray body) would miss the cache in every new process.
+:class:`StableClosureCache` keys such a cell by the function's module, qualified name
+and (recursively) its own closure instead: the source digest of the folder already
+pins the code behind those names.
 """
 
 from __future__ import annotations
@@ -27,7 +35,9 @@ from typing import Any
 
 import numba
 from llvmlite import ir
-from numba.core import cgutils, types
+from numba.core import cgutils, serialize, types
+from numba.core.caching import FunctionCache
+from numba.core.dispatcher import Dispatcher
 from numba.extending import intrinsic
 
 FASTMATH = frozenset({"nsz", "arcp", "contract"})
@@ -57,6 +67,28 @@ CACHE_DIR = cache_root() / f"rayaccel-{source_digest()}"
 numba.config.CACHE_DIR = str(CACHE_DIR)
 
 
+def _stable_cell(value: Any) -> Any:
+    """Return a process-independent stand-in for a closure cell's value (see the module)."""
+    if isinstance(value, Dispatcher):
+        return ("compiled", *_stable_function(value.py_func))
+    return value
+
+
+def _stable_function(func: Callable[..., Any]) -> tuple[Any, ...]:
+    cells = tuple(_stable_cell(c.cell_contents) for c in func.__closure__ or ())
+    return (func.__module__, func.__qualname__, cells)
+
+
+class StableClosureCache(FunctionCache):  # type: ignore[misc]
+    """numba's on-disk function cache, keyed by :func:`_stable_cell` for closure cells."""
+
+    def _index_key(self, sig: Any, codegen: Any) -> Any:
+        func = self._py_func
+        code = hashlib.sha256(func.__code__.co_code).hexdigest()
+        cells = hashlib.sha256(serialize.dumps(_stable_function(func)[2])).hexdigest()
+        return (sig, codegen.magic_tuple(), (code, cells))
+
+
 def cpu_kernel(*, parallel: bool = False) -> Callable[[Callable[..., Any]], Any]:
     """Return the ``njit`` decorator used for every CPU kernel.
 
@@ -65,13 +97,20 @@ def cpu_kernel(*, parallel: bool = False) -> Callable[[Callable[..., Any]], Any]
     parallel : bool
         Compile ``prange`` loops as parallel loops.
     """
-    return numba.njit(  # type: ignore[no-any-return]
+    jit = numba.njit(
         parallel=parallel,
         cache=True,
         nogil=True,
         fastmath=set(FASTMATH),
         error_model="numpy",
     )
+
+    def decorate(func: Callable[..., Any]) -> Any:
+        dispatcher = jit(func)
+        dispatcher._cache = StableClosureCache(func)
+        return dispatcher
+
+    return decorate
 
 
 def cpu_inline(fn: Callable[..., Any]) -> Any:

@@ -56,7 +56,8 @@ from rayaccel.bench import peers as peers_mod
 from rayaccel.bench.raysets import RAY_KINDS, RaySet, parse_kinds, standard_raysets
 from rayaccel.counters import COUNTER_NAMES
 from rayaccel.errors import InvalidInputError
-from rayaccel.kernels.brute_force import QUERY_ANY, QUERY_CLOSEST, brute_force_trace
+from rayaccel.kernels.brute_force import brute_force_trace
+from rayaccel.queries import QUERY_ANY, QUERY_CLOSEST
 from rayaccel.rays.batch import RayBatch
 from rayaccel.scene import catalog, procedural
 from rayaccel.scene.io import scene_stem

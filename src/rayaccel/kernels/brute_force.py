@@ -17,9 +17,7 @@ from numba import prange
 
 from rayaccel._jit import cpu_kernel
 from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup
-
-QUERY_CLOSEST = 0
-QUERY_ANY = 1
+from rayaccel.queries import QUERY_ANY, QUERY_CLOSEST
 
 
 @functools.cache

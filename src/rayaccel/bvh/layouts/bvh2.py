@@ -23,9 +23,8 @@ Packed layout (:class:`PackedBvh2`, Aila & Laine 2009 §3, derived once per acce
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, NamedTuple, TypeVar
+from typing import NamedTuple
 
 import numpy as np
 
@@ -294,23 +293,6 @@ class PackedArrays(NamedTuple):
 
 CACHE_LINE = 64
 
-_Layout = TypeVar("_Layout")
-
-
-def memoised_layout(
-    cache: dict[str, Any] | None, name: str, make: Callable[[], _Layout]
-) -> _Layout:
-    """Return the derived layout ``name`` from ``cache``, made by ``make()`` on first use.
-
-    Every traversal layout derived from a canonical tree (packed, pairs, wide, links,
-    skip, keyed) is memoised this way in its ``Accel``'s cache; without a cache it is
-    made afresh.
-    """
-    if cache is None:
-        return make()
-    if name not in cache:
-        cache[name] = make()
-    return cache[name]  # type: ignore[no-any-return]
 
 
 def aligned_zeros(shape: tuple[int, ...], dtype: type, alignment: int) -> np.ndarray:

@@ -26,8 +26,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, Bvh2, PackedBvh2, aligned_zeros, memoised_layout
+from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, Bvh2, PackedBvh2, aligned_zeros
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+from rayaccel.trace.run import memoised_layout
 
 #: Bytes per up-link and per skip row.
 LINK_BYTES = 4

@@ -64,7 +64,6 @@ from rayaccel.bvh.layouts.bvh2 import (
     Bvh2,
     PackedBvh2,
     aligned_zeros,
-    memoised_layout,
 )
 from rayaccel.bvh.layouts.perfect_hash import ENTRY_BYTES, PerfectHash, build_perfect_hash
 from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, link_packed
@@ -73,18 +72,20 @@ from rayaccel.bvh.traverse.building_blocks import (
     box_entry,
     box_exit,
     check_trail_depth,
-    intersect_leaf,
     pick,
-    ray_prologue,
-    root_entry,
 )
-from rayaccel.bvh.traverse.stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.counters import Counter
 from rayaccel.dtypes import REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.triangle import ray_triangle
+from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
+from rayaccel.trace.leaf import intersect_leaf
+from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.run import memoised_layout, run_trace
+from rayaccel.trace.skeleton import RAY_CHUNK
 
 ZERO32 = np.float32(0.0)
 TWO32 = np.float32(2.0)

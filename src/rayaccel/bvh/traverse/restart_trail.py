@@ -55,21 +55,18 @@ from rayaccel.bvh.layouts.bvh2 import (
     TRIANGLE_BYTES,
     Bvh2,
 )
-from rayaccel.bvh.traverse.building_blocks import (
-    INF32,
-    box_entry,
-    check_trail_depth,
-    intersect_leaf,
-    pick,
-    ray_prologue,
-    root_entry,
-)
-from rayaccel.bvh.traverse.stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.bvh.traverse.building_blocks import INF32, box_entry, check_trail_depth, pick
+from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.counters import Counter
 from rayaccel.dtypes import FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
+from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
+from rayaccel.trace.leaf import intersect_leaf
+from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.run import run_trace
+from rayaccel.trace.skeleton import RAY_CHUNK
 
 ZERO32 = np.float32(0.0)
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES

@@ -45,7 +45,6 @@ from rayaccel.bvh.layouts.bvh2 import (
     STACK_ENTRY_BYTES,
     TRIANGLE_BYTES,
     Bvh2,
-    memoised_layout,
 )
 from rayaccel.bvh.layouts.wide import (
     WIDTHS,
@@ -55,17 +54,17 @@ from rayaccel.bvh.layouts.wide import (
     row_floats,
     wide_layout,
 )
-from rayaccel.bvh.traverse.building_blocks import (
-    intersect_leaf,
-    ray_prologue,
-    root_entry,
-)
-from rayaccel.bvh.traverse.stack import QUERY_ANY, RAY_CHUNK, packed_layout, run_trace
+from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.counters import Counter
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb_wide import slab_test4, slab_test8
+from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
+from rayaccel.trace.leaf import intersect_leaf
+from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.run import memoised_layout, run_trace
+from rayaccel.trace.skeleton import RAY_CHUNK
 
 INF32 = np.float32(np.inf)
 ZERO32 = np.float32(0.0)

@@ -1,0 +1,94 @@
+"""The per-ray constants every traversal computes once, before its first step.
+
+Reciprocal direction and the near/far plane offsets into interleaved boxes (Williams
+et al. 2005), the watertight triangle test's shear constants (Woop, Benthin, Wald
+2013), the culling pad that keeps the slab tests conservative for the watertight
+test (:func:`rayaccel.kernels.aabb.culling_pad`), the hit interval, and the entry
+distance of the scene box. Every family computes them with these functions, so their
+hits are the oracle's bit for bit.
+
+Boxes are interleaved ``(lo_x, hi_x, lo_y, hi_y, lo_z, hi_z)``; the near plane of
+axis ``a`` is column ``2a`` when the direction is non-negative on ``a`` and
+``2a + 1`` otherwise. The offsets ``nx, ny, nz`` and ``fx, fy, fz`` encode that choice
+so a kernel reads ``box[row, col + nx]`` without a branch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rayaccel._jit import cpu_inline, next_up_float32
+from rayaccel.kernels.aabb import culling_pad, ray_box_entry
+from rayaccel.kernels.triangle import ray_triangle_setup
+
+ONE32 = np.float32(1.0)
+
+
+def ray_prologue_py(origin, direction, tmin, tmax, r, root_box):
+    """Return the per-ray constants of ray ``r`` (see the module docstring).
+
+    Returns
+    -------
+    tuple
+        ``(valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, kx, ky, kz, Sx, Sy,
+        Sz, okx, oky, okz, t_lo, t_hit, pad)``. ``valid`` is False for degenerate rays
+        (zero or non-finite direction or origin, empty interval), which miss; the other
+        values are then meaningless. ``t_hit`` starts one ulp above ``tmax`` because
+        the triangle test's upper bound is strict (tmax is inclusive).
+    """
+    ox = origin[r, 0]
+    oy = origin[r, 1]
+    oz = origin[r, 2]
+    dx = direction[r, 0]
+    dy = direction[r, 1]
+    dz = direction[r, 2]
+    t_lo = tmin[r]
+    t_hit = next_up_float32(tmax[r])
+    valid = (
+        t_lo <= tmax[r]
+        and not (dx == 0 and dy == 0 and dz == 0)
+        and np.isfinite(dx)
+        and np.isfinite(dy)
+        and np.isfinite(dz)
+        and np.isfinite(ox)
+        and np.isfinite(oy)
+        and np.isfinite(oz)
+    )
+    # Reciprocal direction and the near/far plane offsets of the interleaved boxes.
+    ix = ONE32 / dx
+    iy = ONE32 / dy
+    iz = ONE32 / dz
+    nx = 0 if ix >= 0 else 1
+    ny = 2 if iy >= 0 else 3
+    nz = 4 if iz >= 0 else 5
+    fx = 1 - nx
+    fy = 5 - ny
+    fz = 9 - nz
+    # Watertight shear constants and the culling pad (computed as in bvh2.stack).
+    kx, ky, kz, Sx, Sy, Sz = ray_triangle_setup(dx, dy, dz)
+    okx = origin[r, kx]
+    oky = origin[r, ky]
+    okz = origin[r, kz]
+    pad = culling_pad(okz, Sz, root_box[2 * kz], root_box[2 * kz + 1])
+    return (
+        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+    )  # fmt: skip
+
+
+
+
+def root_entry_py(root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, lo, hi):
+    """:func:`box_entry_py` of the root box, stored as a flat ``(6,)`` interleaved array.
+
+    (Reshaping it to one row inside a kernel costs numba a runtime call and a reference
+    count round trip per ray.)
+    """
+    return ray_box_entry(
+        ox, oy, oz, ix, iy, iz, root_box[nx], root_box[ny], root_box[nz],
+        root_box[fx], root_box[fy], root_box[fz], lo, hi,
+    )  # fmt: skip
+
+
+ray_prologue = cpu_inline(ray_prologue_py)
+root_entry = cpu_inline(root_entry_py)

@@ -1,0 +1,107 @@
+"""The parallel skeleton every traversal kernel runs in; a traversal supplies its per-ray body.
+
+One worker per thread (``prange`` over :func:`rayaccel._work.worker_count`) takes chunks
+of :data:`RAY_CHUNK` consecutive rays from a shared counter, so coherent rays stay
+together and the threads stay busy however unequal the rays are
+(:mod:`rayaccel._work`). Each worker first makes its scratch arrays once (a stack, a
+short stack, nothing), then runs the traversal's body on every ray of its chunks and
+stores the hit it returns. Each ray writes only its own output slots, so results are
+identical for every thread count.
+
+A traversal module supplies two inline functions (``rayaccel._jit.cpu_inline``):
+
+``make_scratch(layout) -> scratch``
+    The per-worker arrays the body needs (a tuple of arrays, or any value).
+``trace_rays(layout, scratch, origin, direction, tmin, tmax, begin, end, hit_t, ...)``
+    (then ``hit_prim, hit_u, hit_v, counters, query, with_stats``; returns the number
+    of rays that overflowed): its per-ray body inside ``for r in range(begin, end):``,
+    ending each ray with
+    :func:`store_hit`; with ``with_stats`` it stores the ray's counters in
+    ``counters[r]`` (``Counter`` columns).
+
+Both are inlined into the kernel at numba IR level, so the compiled code is the code
+of a hand-written loop. ``query`` and ``with_stats`` reach the body as the kernel's
+compile-time constants, and LLVM removes the branches they rule out. The body takes a
+chunk rather than one ray because every array an inlined function receives or unpacks
+is reference-counted on entry and exit: once per ray that is a dozen atomic updates
+of counts that every thread shares, which cost ``bvh2.stack`` a third of its speed on
+primary rays; once per chunk it is nothing. The kernel returns the number of rays
+that overflowed; :func:`rayaccel.trace.run.run_trace` turns a non-zero count into
+``TraversalOverflowError``.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+from numba import prange
+
+from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel._work import new_counter, next_item, worker_count
+
+#: Rays per work item: enough to amortise taking an item, few enough to balance threads.
+RAY_CHUNK = 64
+
+
+@functools.cache
+def trace_kernel(
+    make_scratch: Any, trace_rays: Any, query: int, with_stats: bool, parallel: bool
+) -> Any:
+    """Return the kernel running ``trace_rays`` over every ray for one compile-time variant.
+
+    Parameters
+    ----------
+    make_scratch, trace_rays : numba dispatchers (``cpu_inline``)
+        The traversal's per-worker scratch and per-ray body (see the module docstring).
+    query : int
+        ``QUERY_CLOSEST`` or ``QUERY_ANY`` (:mod:`rayaccel.queries`).
+    with_stats : bool
+        Whether the body fills per-ray counters.
+    parallel : bool
+        ``prange`` over one worker per thread (nogil), or one worker on the calling thread.
+
+    Returns
+    -------
+    numba dispatcher
+        ``kernel(layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v,
+        counters, n_threads) -> n_overflowed``; ``counters`` is ``(n, N_COUNTERS)`` int32
+        with stats and a ``(0, N_COUNTERS)`` placeholder without; ``n_threads`` is
+        ``numba.get_num_threads()`` read by the caller.
+    """
+
+    @cpu_kernel(parallel=parallel)
+    def kernel(
+        layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
+    ):
+        _ = (query, with_stats, parallel)
+        overflow = 0
+        n_rays = origin.shape[0]
+        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
+        counter = new_counter()
+        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
+            scratch = make_scratch(layout)
+            while True:
+                chunk = next_item(counter, n_chunks)
+                if chunk < 0:
+                    break
+                overflow += trace_rays(
+                    layout, scratch, origin, direction, tmin, tmax,
+                    chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK),
+                    hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+                )  # fmt: skip
+        return overflow
+
+    return kernel
+
+
+def store_hit_py(hit_t, hit_prim, hit_u, hit_v, r, t, prim, u, v):
+    """Store ray ``r``'s hit if it has one (``prim >= 0``); outputs start as misses."""
+    if prim >= 0:
+        hit_t[r] = t
+        hit_prim[r] = prim
+        hit_u[r] = u
+        hit_v[r] = v
+
+
+store_hit = cpu_inline(store_hit_py)
