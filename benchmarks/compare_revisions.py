@@ -81,11 +81,11 @@ def main() -> None:
                         rays.origin, rays.direction, rays.tmin, rays.tmax
                     )
 
-                    def run_new(rays=rays, q=rayset.query, t=traversal):
-                        return accel_new.trace(rays, query=q, traversal=t)
+                    def run_new(rays=rays, q=rayset.query, t=traversal, a=accel_new):
+                        return a.trace(rays, query=q, traversal=t)
 
-                    def run_old(rays=rays_old, q=rayset.query, t=traversal):
-                        return accel_old.trace(rays, query=q, traversal=t)
+                    def run_old(rays=rays_old, q=rayset.query, t=traversal, a=accel_old):
+                        return a.trace(rays, query=q, traversal=t)
 
                     seconds, (hits_new, hits_old) = timed_round_robin(
                         [run_new, run_old], args.repeats
