@@ -30,10 +30,29 @@ from rayaccel.queries import QUERIES
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 
-#: The core pairs: every builder with the reference traversal, every traversal on the
-#: default builder's tree. Other pairs carry the ``cross`` mark (run with ``--full``).
-CORE_BUILDER = "bvh2.binned_sah"
-CORE_TRAVERSAL = "bvh2.stack"
+
+def structure_of(build_key: str) -> str:
+    """The structure a build key (``builder[+step...]``) makes."""
+    from rayaccel import registry
+
+    return registry.get_chain(build_key)[0].structure
+
+
+def is_default_builder(build_key: str) -> bool:
+    """Whether ``build_key`` is its structure's default builder (no steps chained)."""
+    from rayaccel import registry
+
+    return build_key == registry.default_builder(structure_of(build_key))
+
+
+def is_core_pair(build_key: str, traversal: str) -> bool:
+    """The core pairs of each structure (from the registry's ``default=True`` variants):
+    every build key with the structure's default traversal, and every traversal on the
+    default builder's tree. Other pairs carry the ``cross`` mark (run with ``--full``)."""
+    from rayaccel import registry
+
+    structure = structure_of(build_key)
+    return is_default_builder(build_key) or traversal == registry.default_traversal(structure)
 
 
 def builder_traversal_pairs() -> list:
@@ -46,8 +65,7 @@ def builder_traversal_pairs() -> list:
     params = []
     for builder in registry.variants("builder"):
         for traversal in registry.keys("traversal", builder.structure):
-            core = builder.key == CORE_BUILDER or traversal == CORE_TRAVERSAL
-            marks = [] if core else [pytest.mark.cross]
+            marks = [] if is_core_pair(builder.key, traversal) else [pytest.mark.cross]
             params.append(
                 pytest.param(builder.key, traversal, id=f"{builder.key}-{traversal}", marks=marks)
             )

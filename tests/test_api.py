@@ -9,9 +9,10 @@ import pytest
 
 import rayaccel
 import reference
-from rayaccel import api, config, registry
+from rayaccel import config, registry
 from rayaccel.counters import COUNTER_NAMES
 from rayaccel.errors import InvalidInputError, StructureInvariantError, UnknownVariantError
+from rayaccel.queries import QUERY_KINDS, query_constant
 from rayaccel.rays.batch import HitBatch, RayBatch
 
 
@@ -210,10 +211,29 @@ def test_registry_enumeration():
         registry.keys("traversal", "bvh2")
 
 
-def test_default_traversal():
-    assert api.default_traversal("bvh2") == "bvh2.stack"
-    with pytest.raises(InvalidInputError):
-        api.default_traversal("no-such-structure")
+def test_defaults_come_from_the_registry():
+    assert registry.default_traversal("bvh2") == "bvh2.stack"
+    assert registry.default_builder("bvh2") == "bvh2.binned_sah"
+    with pytest.raises(InvalidInputError, match="no default traversal"):
+        registry.default_traversal("no-such-structure")
+
+
+def test_every_structure_has_one_default_builder_and_traversal():
+    for structure in registry.structures():
+        defaults = {
+            role: [v.key for v in registry.variants(role, structure) if v.default]
+            for role in ("builder", "traversal")
+        }
+        assert all(len(keys) == 1 for keys in defaults.values()), (structure, defaults)
+    assert registry.get(registry.DEFAULT_BUILD_KEY, "builder").default
+
+
+def test_pausable_traversal_from_the_registry():
+    key, start = registry.pausable("bvh2")
+    assert registry.get(key, "traversal").structure == "bvh2"
+    assert start.__module__ == registry.get(key).func.__module__
+    with pytest.raises(InvalidInputError, match="can pause"):
+        registry.pausable("no-such-structure")
 
 
 def test_traversal_of_another_structure_rejected(monkeypatch, teapot):
@@ -242,7 +262,9 @@ def test_ray_batch_helpers(rays):
 
 
 def test_query_kinds_constant():
-    assert api.QUERY_KINDS == ("closest", "any")
+    assert QUERY_KINDS == ("closest", "any")
+    with pytest.raises(InvalidInputError, match="query"):
+        query_constant("nearest")
 
 
 def test_trace_rejects_batch_subclass_lookalike(teapot):

@@ -33,18 +33,15 @@ TRAVERSALS = _traversal_params()
 QUERIES = [pytest.param(q, id=q) for q in ("closest", "any")]
 SCENES = scene_params(marks_slow_files=False)
 
-#: The core pairs: every build key with the reference traversal, every traversal on
-#: the default builder's tree.
-CORE_BUILDER = reference.CORE_BUILDER
-CORE_TRAVERSAL = reference.CORE_TRAVERSAL
-#: Scenes of over a million triangles: only the core builder's tree in the default tier
+#: Scenes of over a million triangles: only the default builders' trees in the default tier
 #: (every other build key is checked on the six smaller file scenes; ``--full`` adds
 #: these), which keeps CI's builds of ten trees over 1.4M triangles out of its budget.
 BIG_SCENES = ("kitchen",)
 
 
 def _cross_if_big(builder: str, scene: str) -> list:
-    return [pytest.mark.cross] if scene in BIG_SCENES and builder != CORE_BUILDER else []
+    big = scene in BIG_SCENES and not reference.is_default_builder(builder)
+    return [pytest.mark.cross] if big else []
 
 
 def _pair_scene_params(cross_on_procedural: bool) -> list:
@@ -60,7 +57,7 @@ def _pair_scene_params(cross_on_procedural: bool) -> list:
         file_scene = any(m.name == "scenes" for m in scene.marks)
         for pair in TRAVERSALS:
             builder, traversal = pair.values
-            core = builder == CORE_BUILDER or traversal == CORE_TRAVERSAL
+            core = reference.is_core_pair(builder, traversal)
             marks = list(scene.marks) + _cross_if_big(builder, name)
             if not core and (file_scene or not cross_on_procedural):
                 marks.append(pytest.mark.cross)
@@ -75,7 +72,7 @@ PAIR_SCENES_CROSS = _pair_scene_params(cross_on_procedural=True)
 PAIR_SCENES = _pair_scene_params(cross_on_procedural=False)
 #: Every pair, the non-core ones marked ``cross`` (for the big file scenes).
 PAIRS_CORE_FIRST = [
-    p if CORE_BUILDER in p.values or CORE_TRAVERSAL in p.values
+    p if reference.is_core_pair(*p.values)
     else pytest.param(*p.values, id=p.id, marks=[pytest.mark.cross])
     for p in TRAVERSALS
 ]
@@ -182,7 +179,7 @@ def test_interval_tmax_inclusive(scenes_cache, builder, traversal, scene):
     assert accel.occluded(o, d, t, t, traversal=traversal).all()
 
 
-@pytest.mark.parametrize("traversal", registry.keys("traversal", "bvh2"))
+@pytest.mark.parametrize("traversal", registry.keys("traversal"))
 def test_tmax_inclusive_single_triangle(traversal):
     """Minimal repro: half of the Cornell box's back wall (flat box), tmax = t."""
     import rayaccel
@@ -194,7 +191,7 @@ def test_tmax_inclusive_single_triangle(traversal):
                  np.float32)
     ref = reference.oracle(mesh, RayBatch(o, d))
     assert ref.prim[0] == 0
-    for builder in registry.keys("builder", "bvh2"):
+    for builder in registry.keys("builder", registry.get(traversal).structure):
         accel = rayaccel.build(mesh, builder)
         assert accel.intersect(o, d, traversal=traversal).t[0] == ref.t[0]
         hits = accel.intersect(o, d, 0.0, ref.t, traversal=traversal)

@@ -1,13 +1,14 @@
 """Import layering (STYLE §2), checked by parsing every module's imports with ``ast``.
 
-Layers, lowest first: 0 ``_jit dtypes errors counters config _variant _atomic
-_hugepages _work``;
-1 ``kernels``; 2 ``scene rays``; 3 ``bvh kdtree grid``; 4 ``cuda``; 5 ``registry
-metrics``; 6 ``api``; 7 ``render bench``; 8 ``cli``. A module imports only from its
-own layer or lower ones; sibling packages of one layer (``scene``/``rays``,
-``bvh``/``kdtree``/``grid``, ``registry``/``metrics``, ``render``/``bench``) stay
-independent. The package ``__init__``/``__main__`` re-export and are exempt.
-Imports inside functions and under ``TYPE_CHECKING`` count too.
+Layers, lowest first: 0 ``_jit dtypes errors counters config queries _variant _atomic
+_hugepages _work``; 1 ``kernels``; 2 ``scene rays``; 3 ``trace`` (the family-neutral
+traversal core); 4 ``bvh kdtree grid``; 5 ``cuda``; 6 ``registry metrics``; 7 ``api``;
+8 ``render bench``; 9 ``cli``. A module imports only from its own layer or lower
+ones; sibling packages of one layer (``scene``/``rays``, ``bvh``/``kdtree``/``grid``,
+``registry``/``metrics``, ``render``/``bench``) stay independent, so no family imports
+another. No module imports another module's private (``_name``) names. The package
+``__init__``/``__main__`` re-export and are exempt. Imports inside functions and
+under ``TYPE_CHECKING`` count too.
 """
 
 from __future__ import annotations
@@ -25,23 +26,25 @@ SRC = Path(rayaccel.__file__).resolve().parent
 
 LAYERS: dict[str, int] = {
     "_jit": 0, "dtypes": 0, "errors": 0, "counters": 0, "config": 0, "_variant": 0,
+    "queries": 0,  # not in STYLE §2: query kinds, shared by the oracle and every family
     "_hugepages": 0,  # not in STYLE §2: huge-page advice for arrays allocated in kernels
     "_atomic": 0,  # not in STYLE §2 yet: stdlib-only atomic file writes
     "_work": 0,  # not in STYLE §2: work distribution of parallel kernels (shared counter)
     "kernels": 1,
     "scene": 2, "rays": 2,
-    "bvh": 3, "kdtree": 3, "grid": 3,
-    "cuda": 4,
-    "registry": 5, "metrics": 5,
-    "api": 6,
-    "render": 7, "bench": 7,
-    "cli": 8,
+    "trace": 3,  # not in STYLE §2 yet: what every family's traversals share
+    "bvh": 4, "kdtree": 4, "grid": 4,
+    "cuda": 5,
+    "registry": 6, "metrics": 6,
+    "api": 7,
+    "render": 8, "bench": 8,
+    "cli": 9,
 }
 #: Layer-0 modules are one foundation and may import each other; packages may not.
 FOUNDATION = 0
 EXEMPT = {"__init__", "__main__"}
 #: Third-party imports reserved to some layers (STYLE §2).
-RESERVED = {"matplotlib": 7, "rich": 7}
+RESERVED = {"matplotlib": 8, "rich": 8}
 
 
 def _modules() -> list[tuple[str, Path]]:
@@ -112,6 +115,44 @@ def test_imports_respect_layers(module, path):
         elif theirs == mine and mine != FOUNDATION:
             problems.append(f"line {line}: {own} imports its sibling {other} ({target})")
     assert not problems, f"{module}:\n" + "\n".join(problems)
+
+
+def _private_imports(path: Path) -> list[tuple[int, str]]:
+    """``(line, "module.name")`` for every ``from rayaccel... import _name``."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("rayaccel"):
+            found += [(node.lineno, f"{node.module}.{a.name}") for a in node.names
+                      if a.name.startswith("_") and not a.name.startswith("__")]
+    return found
+
+
+TEST_FILES = sorted(Path(__file__).resolve().parent.rglob("*.py"))
+
+
+@pytest.mark.parametrize("path", [p for _, p in MODULES] + TEST_FILES,
+                         ids=[m for m, _ in MODULES] + [p.name for p in TEST_FILES])
+def test_no_private_names_imported(path):
+    found = _private_imports(path)
+    assert not found, f"{path.name} imports private names: {found}"
+
+
+def test_private_import_checker(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("from rayaccel.bvh.builders.sbvh import _split, public\n"
+                   "from rayaccel import __version__\n")
+    assert _private_imports(bad) == [(1, "rayaccel.bvh.builders.sbvh._split")]
+
+
+def test_families_never_import_each_other():
+    families = [name for name, layer in LAYERS.items() if layer == LAYERS["bvh"]]
+    for module, path in MODULES:
+        own = _component(module)
+        if own not in families:
+            continue
+        others = {_component(t) for _, t in _imports(path, module)} & set(families)
+        assert others <= {own}, f"{module} imports the family {others - {own}}"
 
 
 def test_checker_catches_violations(tmp_path):

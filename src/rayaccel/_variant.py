@@ -53,6 +53,9 @@ class Variant:
     stage : {"before", "after"}
         When a step runs relative to the builder (see ``func``); ``"after"`` for
         builders and traversals.
+    default : bool
+        The builder or traversal used for its structure when none is named (one of
+        each per structure; the conformance tests pair every variant with it).
     """
 
     key: str
@@ -64,6 +67,7 @@ class Variant:
     reference: str = ""
     backend: Literal["cpu", "cuda"] = "cpu"
     stage: Stage = "after"
+    default: bool = False
 
     @property
     def takes_refs(self) -> bool:
@@ -93,6 +97,9 @@ class Variant:
 
 
 REGISTRY: dict[str, Variant] = {}
+#: Traversals that can pause and resume, by key: ``start(structure, mesh, rays, cache=None)``
+#: returns a state whose ``next_hits()`` resumes every ray (see :func:`register_pausable`).
+PAUSABLE: dict[str, Callable[..., Any]] = {}
 
 
 def register(
@@ -104,25 +111,46 @@ def register(
     reference: str = "",
     backend: Literal["cpu", "cuda"] = "cpu",
     stage: Stage = "after",
+    default: bool = False,
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """Decorator registering ``func`` as the variant ``key``.
 
     ``stage`` applies to steps only: ``"after"`` (default) for a post-process of the
     built structure, ``"before"`` for a step that makes the references the builder
-    builds over (see :class:`Variant`).
+    builds over (see :class:`Variant`). ``default`` marks the builder or traversal of
+    its structure used when none is named.
     """
     structure = key.replace(STEP_SEPARATOR, ".").split(".", 1)[0]
     if (role == "step") != (STEP_SEPARATOR in key):
         raise ValueError(f"variant {key!r}: steps, and only steps, are named <structure>+<name>")
     if stage not in ("before", "after") or (role != "step" and stage != "after"):
         raise ValueError(f"variant {key!r}: stage must be 'before' or 'after' (steps only)")
+    if default and role == "step":
+        raise ValueError(f"variant {key!r}: only builders and traversals can be the default")
 
     def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
         if key in REGISTRY and REGISTRY[key].func is not func:
             raise ValueError(f"variant {key!r} registered twice")
         REGISTRY[key] = Variant(
-            key, role, structure, func, options, summary, reference, backend, stage
+            key, role, structure, func, options, summary, reference, backend, stage, default
         )
         return func
+
+    return decorate
+
+
+def register_pausable(key: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Decorator registering ``start`` as the pausable form of the traversal ``key``.
+
+    ``start(structure, mesh, rays, cache=None)`` returns a state object whose
+    ``next_hits()`` resumes every ray where it stopped and returns its next hit, and
+    whose ``all_hits()`` collects every hit (Binder & Keller 2016, building block 5).
+    """
+
+    def decorate(start: Callable[..., Any]) -> Callable[..., Any]:
+        if key in PAUSABLE and PAUSABLE[key] is not start:
+            raise ValueError(f"pausable traversal {key!r} registered twice")
+        PAUSABLE[key] = start
+        return start
 
     return decorate

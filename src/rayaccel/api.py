@@ -22,19 +22,10 @@ from rayaccel import config, registry
 from rayaccel.counters import counters_to_dict, empty_counters
 from rayaccel.dtypes import BoolArray
 from rayaccel.errors import InvalidInputError
+from rayaccel.queries import QUERY_KINDS
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-
-QUERY_KINDS = ("closest", "any")
-
-
-def default_traversal(structure: str) -> str:
-    """Return the traversal key used when none is named: ``<structure>.stack`` if registered."""
-    candidates = registry.keys("traversal", structure)
-    if not candidates:
-        raise InvalidInputError(f"no traversal is registered for structure {structure!r}")
-    preferred = f"{structure}.stack"
-    return preferred if preferred in candidates else candidates[0]
+from rayaccel.trace.structure import QualityMetrics, Structure
 
 
 class Accel:
@@ -49,8 +40,8 @@ class Accel:
     key : str
         The builder's registry key.
     mesh : TriangleMesh
-    structure : object
-        The canonical structure (e.g. :class:`rayaccel.bvh.layouts.bvh2.Bvh2`).
+    structure : Structure
+        The canonical structure the builder made (:class:`rayaccel.trace.structure.Structure`).
     options : object
         The builder options used.
     build_ms : float
@@ -101,7 +92,8 @@ class Accel:
         query : {"closest", "any"}
             ``"any"`` stops at the first hit found (``prim`` is some hit, not the closest).
         traversal : str, optional
-            Traversal registry key; default ``<structure>.stack``.
+            Traversal registry key; default: the structure's default traversal
+            (:func:`rayaccel.registry.default_traversal`).
         stats : bool
             Fill ``hits.stats`` with per-ray counters.
         **options
@@ -111,7 +103,7 @@ class Accel:
             raise InvalidInputError(f"query: expected one of {QUERY_KINDS}, got {query!r}")
         if not isinstance(rays, RayBatch):
             raise InvalidInputError(f"rays: expected a RayBatch, got {type(rays).__name__}")
-        key = traversal or default_traversal(self.structure_name)
+        key = traversal or registry.default_traversal(self.structure_name)
         variant = registry.get(key, "traversal")
         if variant.structure != self.structure_name:
             raise InvalidInputError(
@@ -119,8 +111,6 @@ class Accel:
                 f"{self.structure_name!r} (built by {self.key!r})"
             )
         opts = variant.make_options(options)
-        if query not in ("closest", "any"):
-            raise InvalidInputError(f"query: expected 'closest' or 'any', got {query!r}")
         if rays.n_rays == 0:
             empty = HitBatch.empty(0)
             if stats:
@@ -159,7 +149,7 @@ class Accel:
         tmin, tmax : float or (n,) array_like of float
             Hits are accepted in ``[tmin, tmax]``; ``tmin > tmax`` is a miss.
         traversal : str, optional
-            Traversal registry key (``rayaccel list``); default ``<structure>.stack``.
+            Traversal registry key (``rayaccel list``); default: the structure's default.
         stats : bool
             Also return per-ray counters (``hits.stats["nodes"]`` etc.).
         **options
@@ -201,25 +191,19 @@ class Accel:
 
         Each ``state.next_hits()`` call resumes every ray where it stopped and returns
         its next hit in traversal order; ``state.all_hits()`` collects every hit in
-        ``[tmin, tmax]`` sorted by ray, ``t`` and primitive. See
-        :class:`rayaccel.bvh.traverse.perfect_hash.TraversalState`.
+        ``[tmin, tmax]`` sorted by ray, ``t`` and primitive. The structure's pausable
+        traversal is looked up in the registry (:func:`rayaccel.registry.pausable`).
 
         Raises
         ------
         InvalidInputError
-            The structure is not a ``bvh2``.
+            No traversal of this structure can pause and resume.
         """
-        if self.structure_name != "bvh2":
-            raise InvalidInputError(
-                f"traversal_state: only bvh2 structures can pause and resume, "
-                f"this accel is a {self.structure_name!r}"
-            )
-        from rayaccel.bvh.traverse.perfect_hash import start_traversal
-
+        _, start = registry.pausable(self.structure_name)
         rays = RayBatch(origins, directions, tmin, tmax)
         with self._lock:
             cache = self._cache
-        return start_traversal(self.structure, self.mesh, rays, cache=cache)
+        return start(self.structure, self.mesh, rays, cache=cache)
 
     # -- structure -----------------------------------------------------------------------------
 
@@ -237,23 +221,30 @@ class Accel:
     ) -> dict[str, Any]:
         """Return build and quality figures.
 
-        Keys: ``builder``, ``structure``, ``build_ms``, ``step_ms``, ``n_prims``,
-        ``n_nodes``, ``n_leaves``, ``n_refs``, ``refs_per_prim``, ``depth``, ``sah``,
-        ``mean_leaf_size``, ``bytes`` (canonical plus every derived layout built so
-        far), ``options``; ``epo`` and ``lcv`` when requested.
+        Keys: ``builder``, ``structure``, ``build_ms``, ``step_ms``, ``n_prims``, the
+        structure's own figures (:meth:`rayaccel.trace.structure.Structure.info`; for
+        a BVH ``n_nodes``, ``n_leaves``, ``n_refs``, ``depth``, ``sah``,
+        ``mean_leaf_size``), ``refs_per_prim`` when it counts references, ``bytes``
+        (canonical plus every derived layout built so far), ``options``; ``epo`` and
+        ``lcv`` when requested.
 
         Parameters
         ----------
         inner_cost, prim_cost : float
             SAH (and EPO) constants ``C_inner`` and ``C_prim`` (Aila et al. 2013: 1.2, 1).
         epo : bool
-            Also compute the end-point overlap (:func:`rayaccel.bvh.metrics.epo`;
-            seconds to a minute on million-triangle scenes).
+            Also compute the end-point overlap (seconds to a minute on million-triangle
+            scenes).
         lcv_rays : RayBatch, optional
             Also compute the leaf count variability over these rays (closest hits
             found with the default traversal).
+
+        Raises
+        ------
+        InvalidInputError
+            ``epo`` or ``lcv_rays`` asked of a structure without quality metrics.
         """
-        s = self.structure
+        s: Structure = self.structure
         derived_bytes = sum(int(v.nbytes()) for v in self._cache.values() if hasattr(v, "nbytes"))
         info: dict[str, Any] = {
             "builder": self.key,
@@ -262,32 +253,28 @@ class Accel:
             "step_ms": {k: round(v, 3) for k, v in self.step_ms.items()},
             "n_prims": self.mesh.n_triangles,
         }
-        if hasattr(s, "info"):
-            info.update(s.info())
-        else:
-            info.update(
-                n_nodes=s.n_nodes,
-                n_leaves=s.n_leaves,
-                n_refs=s.n_refs,
-                depth=s.depth(),
-                sah=s.sah_cost(inner_cost, prim_cost),
-                mean_leaf_size=s.n_refs / max(s.n_leaves, 1),
-            )
+        info.update(s.info(inner_cost, prim_cost))
         if "n_refs" in info:
             info["refs_per_prim"] = info["n_refs"] / max(self.mesh.n_triangles, 1)
         if epo or lcv_rays is not None:
-            from rayaccel.bvh import metrics
-
-            if epo:
-                info["epo"] = metrics.epo(s, self.mesh.triangles(), inner_cost, prim_cost)
+            if not isinstance(s, QualityMetrics):
+                raise InvalidInputError(
+                    f"epo and lcv are defined for hierarchies of boxes; a {self.structure_name!r} "
+                    "has no quality metrics"
+                )
+            segments = None
             if lcv_rays is not None:
                 hits = self.trace(lcv_rays)
                 t_hit = np.minimum(hits.t, lcv_rays.tmax)
-                counts = metrics.leaf_counts(
-                    s, lcv_rays.origin, lcv_rays.direction, lcv_rays.tmin, t_hit
-                )
-                info["lcv"] = metrics.lcv(counts)
-                info["mean_leaves_per_ray"] = float(counts.mean()) if counts.size else 0.0
+                segments = (lcv_rays.origin, lcv_rays.direction, lcv_rays.tmin, t_hit)
+            quality = s.quality(
+                self.mesh.triangles(),
+                epo=epo,
+                segments=segments,
+                inner_cost=inner_cost,
+                prim_cost=prim_cost,
+            )
+            info.update(quality)
         info["bytes"] = int(s.nbytes()) + derived_bytes
         info["options"] = {
             k: getattr(self.options, k) for k in getattr(self.options, "__slots__", ())
@@ -299,14 +286,15 @@ class Accel:
         self.structure.validate(self.mesh.triangles())
 
 
-def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> Accel:
+def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
     """Build an acceleration structure over ``mesh`` with the registered builder ``key``.
 
     Parameters
     ----------
     mesh : TriangleMesh
-    key : str
-        Builder registry key (``rayaccel list``), e.g. ``"bvh2.binned_sah"``,
+    key : str, optional
+        Builder registry key (``rayaccel list``), e.g. ``"bvh2.binned_sah"`` (the
+        default, :data:`rayaccel.registry.DEFAULT_BUILD_KEY`),
         optionally followed by build steps: ``"bvh2.lbvh+presplit+reinsert"``. A
         pre-build step (stage ``"before"``, at most one) runs first and makes the
         references the builder builds over (``refs=``); post-build steps (stage
@@ -332,6 +320,7 @@ def build(mesh: TriangleMesh, key: str = "bvh2.binned_sah", **options: Any) -> A
             f"mesh: expected a rayaccel.TriangleMesh, got {type(mesh).__name__} "
             "(use rayaccel.TriangleMesh(vertices, faces) or rayaccel.load_mesh(path))"
         )
+    key = key or registry.DEFAULT_BUILD_KEY
     variant, steps = registry.get_chain(key)
     step_names = [step.key.split("+", 1)[1] for step in steps]
     step_values = {name: options.pop(name) for name in set(step_names) if name in options}

@@ -19,24 +19,44 @@ from __future__ import annotations
 
 import difflib
 import importlib
+from collections.abc import Callable
+from typing import Any
 
-from rayaccel._variant import REGISTRY, STEP_SEPARATOR, Role, Stage, Variant, register
-from rayaccel.errors import UnknownVariantError
+from rayaccel._variant import (
+    PAUSABLE,
+    REGISTRY,
+    STEP_SEPARATOR,
+    Role,
+    Stage,
+    Variant,
+    register,
+    register_pausable,
+)
+from rayaccel.errors import InvalidInputError, UnknownVariantError
 
 __all__ = [
     "BUILTIN_MODULES",
     "CONFIGURATIONS",
+    "DEFAULT_BUILD_KEY",
     "Role",
     "Stage",
     "Variant",
     "build_keys",
     "configurations",
+    "default_builder",
+    "default_traversal",
     "get",
     "get_chain",
     "keys",
+    "pausable",
     "register",
+    "register_pausable",
+    "structures",
     "variants",
 ]
+
+#: The build key :func:`rayaccel.build` uses when none is named.
+DEFAULT_BUILD_KEY = "bvh2.binned_sah"
 
 #: Every module that registers variants (a test checks no build_/traverse_ module is missing).
 BUILTIN_MODULES: tuple[str, ...] = (
@@ -99,6 +119,51 @@ def variants(role: Role | None = None, structure: str | None = None) -> list[Var
 def keys(role: Role | None = None, structure: str | None = None) -> list[str]:
     """Return registered keys, sorted."""
     return [v.key for v in variants(role, structure)]
+
+
+def structures() -> list[str]:
+    """Return every structure some builder builds, sorted (``["bvh2", ...]``)."""
+    return sorted({v.structure for v in variants("builder")})
+
+
+def _default(role: Role, structure: str) -> str:
+    marked = [v.key for v in variants(role, structure) if v.default]
+    if not marked:
+        known = ", ".join(structures())
+        raise InvalidInputError(
+            f"no default {role} is registered for structure {structure!r} (structures: {known})"
+        )
+    if len(marked) > 1:
+        raise ValueError(f"structure {structure!r} has several default {role}s: {marked}")
+    return marked[0]
+
+
+def default_builder(structure: str) -> str:
+    """Return the builder registered with ``default=True`` for ``structure``."""
+    return _default("builder", structure)
+
+
+def default_traversal(structure: str) -> str:
+    """Return the traversal registered with ``default=True`` for ``structure``."""
+    return _default("traversal", structure)
+
+
+def pausable(structure: str) -> tuple[str, Callable[..., Any]]:
+    """Return ``(key, start)`` of the pausable traversal of ``structure``.
+
+    Raises
+    ------
+    InvalidInputError
+        No traversal of ``structure`` can pause and resume.
+    """
+    _load()
+    for key in sorted(PAUSABLE):
+        if REGISTRY[key].structure == structure:
+            return key, PAUSABLE[key]
+    raise InvalidInputError(
+        f"no traversal of {structure!r} can pause and resume "
+        f"(pausable: {', '.join(sorted(PAUSABLE)) or 'none'})"
+    )
 
 
 def configurations() -> list[str]:

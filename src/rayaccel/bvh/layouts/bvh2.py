@@ -24,7 +24,7 @@ Packed layout (:class:`PackedBvh2`, Aila & Laine 2009 §3, derived once per acce
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -131,6 +131,43 @@ class Bvh2:
         if root_area <= 0.0:
             return float(prim_cost * self.n_refs) if leaf[0] else float(inner_cost + prim_cost)
         return float(total / root_area)
+
+    def info(self, inner_cost: float = 1.2, prim_cost: float = 1.0) -> dict[str, Any]:
+        """Return node, leaf and reference counts, depth, SAH cost and mean leaf size."""
+        return {
+            "n_nodes": self.n_nodes,
+            "n_leaves": self.n_leaves,
+            "n_refs": self.n_refs,
+            "depth": self.depth(),
+            "sah": self.sah_cost(inner_cost, prim_cost),
+            "mean_leaf_size": self.n_refs / max(self.n_leaves, 1),
+        }
+
+    def quality(
+        self,
+        triangles: FloatArray,
+        *,
+        epo: bool = False,
+        segments: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+        inner_cost: float = 1.2,
+        prim_cost: float = 1.0,
+    ) -> dict[str, Any]:
+        """Return the end-point overlap and leaf count variability (:mod:`rayaccel.bvh.metrics`).
+
+        ``epo`` asks for the end-point overlap (seconds to a minute on million-triangle
+        scenes); ``segments = (origin, direction, tmin, t_hit)`` for the leaf count
+        variability and mean leaves per ray over those ray segments.
+        """
+        from rayaccel.bvh import metrics
+
+        out: dict[str, Any] = {}
+        if epo:
+            out["epo"] = metrics.epo(self, triangles, inner_cost, prim_cost)
+        if segments is not None:
+            counts = metrics.leaf_counts(self, *segments)
+            out["lcv"] = metrics.lcv(counts)
+            out["mean_leaves_per_ray"] = float(counts.mean()) if counts.size else 0.0
+        return out
 
     def validate(self, triangles: FloatArray | None = None) -> None:
         """Check every invariant; raise :class:`StructureInvariantError` naming the first broken.

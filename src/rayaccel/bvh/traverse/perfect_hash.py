@@ -53,7 +53,7 @@ from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
 from rayaccel._jit import cpu_kernel, prefetch_row
-from rayaccel._variant import register
+from rayaccel._variant import register, register_pausable
 from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import (
     CACHE_LINE,
@@ -706,6 +706,7 @@ class TraversalState:
         return ray[first], t[first], prim[first], u[first], v[first]
 
 
+@register_pausable("bvh2.perfect_hash")
 def start_traversal(
     bvh: Bvh2, mesh: TriangleMesh, rays: RayBatch, cache: dict[str, Any] | None = None
 ) -> TraversalState:
