@@ -12,7 +12,7 @@ ifneq ($(wildcard $(SHARED_SCENES)),)
 export RAYACCEL_SCENE_PATH ?= $(SHARED_SCENES)
 endif
 
-.PHONY: demo test bench lint system-deps clean
+.PHONY: demo test bench lint docs system-deps clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -49,6 +49,18 @@ bench: $(STAMP) system-deps
 lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks
 
+# The documentation (Sphinx, pydata theme, numpydoc, gallery of examples/) into docs/_build/html.
+DOCS_STAMP := $(VENV)/.docs-stamp
+
+$(DOCS_STAMP): $(STAMP) pyproject.toml
+	$(BIN)/python -m pip install --quiet -e ".[docs]"
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(BIN)/sphinx-build -W --keep-going -b html docs docs/_build/html
+	@echo "documentation in docs/_build/html/index.html"
+
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis
+	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis docs/_build docs/auto_examples docs/gen_modules \
+	  docs/sg_execution_times.rst
 	find src -name __pycache__ -type d -prune -exec rm -rf {} +
