@@ -112,11 +112,9 @@ def _nonnegative_int(text: str) -> int:
 
 def default_builder() -> str:
     """Return the builder :func:`rayaccel.build` uses when none is named."""
-    import inspect
+    from rayaccel import registry
 
-    from rayaccel import api
-
-    return str(inspect.signature(api.build).parameters["key"].default)
+    return registry.DEFAULT_BUILD_KEY
 
 
 def _builder_keys(values: Sequence[str] | None, default_all: bool) -> list[str]:

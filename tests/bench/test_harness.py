@@ -194,3 +194,29 @@ def test_peer_matches_the_oracle(name):
         else:
             t, prim = peer.intersect(rays)
             assert harness.count_mismatches(ref, "closest", t, prim, harness.RTOL_PEER) == 0
+
+
+def test_compile_phase_makes_every_kernel_the_timings_call(monkeypatch):
+    """No traversal kernel is first made during the scene phase (no stall between ray sets)."""
+    from rayaccel.trace.skeleton import trace_kernel
+
+    trace_kernel.cache_clear()
+    at_scene_start = []
+    make_raysets = harness.standard_raysets
+
+    def count_then_make(*args, **kwargs):
+        at_scene_start.append(trace_kernel.cache_info().currsize)
+        return make_raysets(*args, **kwargs)
+
+    monkeypatch.setattr(harness, "standard_raysets", count_then_make)
+    config = harness.BenchConfig(
+        scenes=["cornell-box"], builders=["bvh2.binned_sah"], traversals=["bvh2.stack"],
+        width=64, height=64, repeats=1, build_repeats=1, validate=40, warmup_triangles=600,
+        threads=(1,),
+    )  # fmt: skip
+    result = harness.run_bench(config)
+    # closest/any x plain/stats x serial (oracle sample) and parallel (64 x 64 rays)
+    assert at_scene_start == [8]
+    assert trace_kernel.cache_info().currsize == 8
+    variants = {r["variant"] for r in result.records if r["record"] == "compile"}
+    assert {"closest serial", "any+stats parallel", "build"} <= variants

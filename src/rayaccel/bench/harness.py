@@ -4,9 +4,9 @@ For every scene, thread count and system (each registered builder × each traver
 of its structure, plus the available peers of :mod:`rayaccel.bench.peers`):
 
 1. **Compile first.** Before any scene, every builder and every traversal variant
-   (closest/any × plain/stats) runs once on a small procedural mesh large enough
-   to reach the parallel code paths (``warmup_triangles``), with as many rays as
-   the primary set up to :data:`WARMUP_RAYS`. The first call's time is recorded as a
+   (closest/any × plain/stats × the serial and parallel kernels the run will call)
+   runs once on a small procedural mesh large enough to reach the parallel code
+   paths (``warmup_triangles``). The first call's time is recorded as a
    ``compile`` record, labelled ``jit`` when numba wrote new cache files during it
    and ``cache`` when it only loaded them, so compilation never pollutes a timing.
 2. **Validate** each system on each ray set against an oracle before timing it: a
@@ -62,6 +62,7 @@ from rayaccel.rays.batch import RayBatch
 from rayaccel.scene import catalog, procedural
 from rayaccel.scene.io import scene_stem
 from rayaccel.scene.mesh import TriangleMesh
+from rayaccel.trace.run import PARALLEL_MIN_RAYS
 
 #: Most ray/triangle tests the brute-force validation may spend per ray set.
 BRUTE_FORCE_BUDGET = 400_000_000
@@ -484,30 +485,52 @@ class _Run:
     # -- compile phase ---------------------------------------------------------------------
 
     def compile_all(self) -> None:
-        """Run every builder and traversal variant once on a small mesh; record the first call."""
+        """Run every builder and traversal variant once on a small mesh; record the first call.
+
+        Each traversal is called with a batch below :data:`rayaccel.trace.run.PARALLEL_MIN_RAYS`
+        (the serial kernels the oracle check runs) and, when the measured sets reach it,
+        with one above (the parallel kernels the timings run), each query with and
+        without stats: every kernel a measurement calls is compiled or loaded here,
+        before any timing, with the progress line naming it.
+        """
         mesh = procedural.triangle_soup(self.config.warmup_triangles, seed=1)
         rng = np.random.Generator(np.random.PCG64(2))
-        # As many rays as the primary set, up to WARMUP_RAYS: the same serial or
-        # parallel kernels as the measurements get compiled
-        n_rays = min(WARMUP_RAYS, self.config.width * self.config.height)
-        origin = rng.uniform(-0.5, 1.5, (n_rays, 3))
-        target = rng.uniform(0.0, 1.0, (n_rays, 3))
-        rays = RayBatch(origin, target - origin, 0.0, np.inf)
-        for builder in self.config.builder_keys():
+        sizes = [min(WARMUP_RAYS, PARALLEL_MIN_RAYS - 1)]
+        if self.config.width * self.config.height >= PARALLEL_MIN_RAYS:
+            sizes.append(PARALLEL_MIN_RAYS)
+        batches = []
+        for n_rays in sizes:
+            origin = rng.uniform(-0.5, 1.5, (n_rays, 3))
+            target = rng.uniform(0.0, 1.0, (n_rays, 3))
+            batches.append(RayBatch(origin, target - origin, 0.0, np.inf))
+        builders = self.config.builder_keys()
+        n_kernels = sum(1 + 4 * len(batches) * len(self.config.traversal_keys(b)) for b in builders)
+        done = 0
+        for builder in builders:
+            self.ui.describe(f"compiling {builder} ({done + 1}/{n_kernels})")
             accel, first_ms, status = self._first_call(
                 lambda b=builder: api.build(mesh, b, **self.config.builder_options)
             )
+            done += 1
             self.emit_compile(builder, None, "build", first_ms, status, mesh)
             for traversal in self.config.traversal_keys(builder):
-                for query in ("closest", "any"):
-                    for stats in (False, True):
-                        _, first_ms, status = self._first_call(
-                            lambda a=accel, t=traversal, q=query, s=stats: a.trace(
-                                rays, query=q, traversal=t, stats=s
+                for rays in batches:
+                    mode = "parallel" if rays.n_rays >= PARALLEL_MIN_RAYS else "serial"
+                    for query in ("closest", "any"):
+                        for stats in (False, True):
+                            variant = f"{query}{'+stats' if stats else ''}"
+                            self.ui.describe(
+                                f"compiling {traversal} {variant} {mode} ({done + 1}/{n_kernels})"
                             )
-                        )
-                        variant = f"{query}{'+stats' if stats else ''}"
-                        self.emit_compile(builder, traversal, variant, first_ms, status, mesh)
+                            _, first_ms, status = self._first_call(
+                                lambda a=accel, t=traversal, q=query, s=stats, r=rays: a.trace(
+                                    r, query=q, traversal=t, stats=s
+                                )
+                            )
+                            done += 1
+                            self.emit_compile(
+                                builder, traversal, f"{variant} {mode}", first_ms, status, mesh
+                            )
 
     def _first_call(self, fn: Callable[[], Any]) -> tuple[Any, float, str]:
         before = _cache_snapshot()
