@@ -6,6 +6,9 @@ STAMP := $(VENV)/.installed-stamp
 SHARED_SCENES := $(abspath ../shared/scenes)
 OUT := out
 DEMO_SCENE := teapot
+# The default builder and traversal, and the fastest traversal (docs/performance.md).
+DEMO_BUILDER := bvh2.binned_sah
+DEMO_TRAVERSALS := bvh2.stack bvh2.wide
 
 # Tests and benchmarks find the bundled scenes through this search path when present.
 ifneq ($(wildcard $(SHARED_SCENES)),)
@@ -33,11 +36,11 @@ system-deps:
 demo: $(STAMP) system-deps
 	mkdir -p $(OUT)
 	$(BIN)/rayaccel list
-	$(BIN)/rayaccel bench $(DEMO_SCENE) --accel bvh2.binned_sah --rays primary,diffuse,shadow --threads 2 \
-	  --json $(OUT)/demo-bench.jsonl
-	$(BIN)/rayaccel render $(DEMO_SCENE) --accel bvh2.binned_sah --traversal bvh2.stack --view heatmap \
+	$(BIN)/rayaccel bench $(DEMO_SCENE) --accel $(DEMO_BUILDER) --traversal $(DEMO_TRAVERSALS) \
+	  --rays primary,diffuse,shadow --threads 2 --json $(OUT)/demo-bench.jsonl
+	$(BIN)/rayaccel render $(DEMO_SCENE) --accel $(DEMO_BUILDER) --view heatmap \
 	  --metric nodes -o $(OUT)/demo-heatmap.png --legend $(OUT)/demo-legend.png
-	$(BIN)/rayaccel render $(DEMO_SCENE) --accel bvh2.binned_sah --view shade -o $(OUT)/demo-shade.png
+	$(BIN)/rayaccel render $(DEMO_SCENE) --accel $(DEMO_BUILDER) --view shade -o $(OUT)/demo-shade.png
 	@echo "demo outputs in $(OUT)/"
 
 test: $(STAMP) system-deps
