@@ -22,6 +22,16 @@ Counters of the stackless traversals (0 for traversals they do not apply to):
 ``backtrack_uncle``        ... the uncle (1 level up)
 ``backtrack_grand_uncle``  ... the grand-uncle (2 levels up)
 ``backtrack_further``      ... further up (3 or more levels)
+
+Counters of the kd-trees and grids (0 for traversals they do not apply to):
+
+``leaves``          leaves entered (kd-trees), empty ones included
+``empty_leaves``    leaves entered that hold no primitive
+``rope_steps``      rope links followed from leaf to leaf (kd-tree ropes)
+``cells``           grid cells visited (every level of a hierarchical grid)
+``empty_cells``     grid cells visited that hold no primitive
+``mailbox_hits``    primitive tests skipped because the mailbox had just tested them
+``vertical_steps``  level changes in an occupancy pyramid or a two-level grid
 """
 
 from __future__ import annotations
@@ -47,6 +57,13 @@ class Counter(IntEnum):
     BACKTRACK_UNCLE = 10
     BACKTRACK_GRAND_UNCLE = 11
     BACKTRACK_FURTHER = 12
+    LEAVES = 13
+    EMPTY_LEAVES = 14
+    ROPE_STEPS = 15
+    CELLS = 16
+    EMPTY_CELLS = 17
+    MAILBOX_HITS = 18
+    VERTICAL_STEPS = 19
 
 
 N_COUNTERS = len(Counter)
