@@ -78,6 +78,9 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.traverse.restart_trail",
     "rayaccel.bvh.traverse.perfect_hash",
     "rayaccel.bvh.traverse.wide",
+    "rayaccel.grid.builders.uniform",
+    "rayaccel.grid.builders.skip",
+    "rayaccel.grid.traverse.dda",
 )
 
 #: Composed build keys enumerated beside the plain builders: the eight configurations of

@@ -1,0 +1,341 @@
+"""Uniform grid construction by sorting cell/primitive pairs (Kalojanov & Slusallek 2009).
+
+Resolution (Slusallek's lecture; ALGORITHMS §7.1): ``R_a = e_a · cbrt(λ·n / V)`` for
+the box extents ``e``, its volume ``V``, ``n`` primitives and the density λ (cells per
+primitive, default 5 as in Kalojanov's code). An axis whose ``R_a`` falls below one
+gets one cell and the formula is re-solved over the other axes (a flat scene gets the
+2D formula ``e_a · sqrt(λ·n / A)``), so the cell count stays ``λ·n``.
+
+Build, data-parallel like the GPU original ("A Parallel Algorithm for Construction of
+Uniform Grids", HPG 2009):
+
+1. *count*: each primitive counts the cells of its bounding box that it really overlaps
+   (exact triangle/box test, Akenine-Möller 2001, :mod:`rayaccel.kernels.overlap`,
+   against the cell widened by :func:`~rayaccel.grid.layouts.uniform.cell_margin`);
+   a triangle inside one cell skips the test;
+2. *prefix sum* of the counts gives each primitive its output slots;
+3. *fill*: the same loop writes ``(cell, primitive)`` pairs;
+4. *sort* the pairs by cell (parallel LSD radix sort, :mod:`rayaccel.kernels.radix_sort`;
+   stable, so ids stay increasing within a cell);
+5. *cell ranges*: where each cell's run starts.
+
+Memory never grows without bound: a density asking for more than ``max_cells`` cells
+raises :class:`~rayaccel.errors.InvalidInputError`, and when the primitives' bounding
+boxes would make more than ``min(max_refs, max_refs_per_prim · n)`` pairs (e.g. 100k
+copies of one triangle, each in every cell) the resolution is lowered until they fit.
+Cost O(n + pairs + cells).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_kernel
+from rayaccel._variant import register
+from rayaccel.dtypes import INDEX, REAL
+from rayaccel.errors import InvalidInputError
+from rayaccel.grid.layouts.uniform import (
+    BOX_MARGIN,
+    MAX_RES_AXIS,
+    SKIP_COLUMNS,
+    SKIP_NONE,
+    UniformGrid,
+    cell_margin,
+)
+from rayaccel.kernels.overlap import triangle_box_overlap
+from rayaccel.kernels.radix_sort import radix_sort
+from rayaccel.scene.mesh import TriangleMesh
+
+#: Primitives per work chunk of the count and fill kernels.
+PRIM_CHUNK = 4096
+
+
+@dataclass(frozen=True, slots=True)
+class UniformGridOptions:
+    """Options of :func:`build_uniform_grid` (and the skipping builders on it).
+
+    Attributes
+    ----------
+    density : float
+        λ, cells per primitive (0 < λ <= 1024); 5 is Kalojanov's default.
+    max_cells : int
+        Largest number of cells (1..2**31 - 2); a density asking for more raises
+        ``InvalidInputError``. Also capped by a quarter of the physical memory at 16
+        bytes per cell.
+    max_refs : int
+        Largest number of cell/primitive pairs the bounding boxes may make
+        (1..2**31 - 1); above it the resolution is lowered (each pair costs about 24
+        bytes while sorting and 40 in the traversal layout).
+    max_refs_per_prim : float
+        The same budget per primitive (>= 1): ``min(max_refs, max_refs_per_prim · n)``.
+        Primitives whose boxes span many cells (huge triangles, many copies of one)
+        thus lower the resolution instead of multiplying the references.
+    """
+
+    density: float = 5.0
+    max_cells: int = 2**26
+    max_refs: int = 2**26
+    max_refs_per_prim: float = 16.0
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.density <= 1024.0):
+            raise InvalidInputError(f"density: expected 0 < λ <= 1024, got {self.density}")
+        if not 1 <= self.max_cells <= 2**31 - 2:
+            raise InvalidInputError(f"max_cells: expected 1..2**31-2, got {self.max_cells}")
+        if not 1 <= self.max_refs <= 2**31 - 1:
+            raise InvalidInputError(f"max_refs: expected 1..2**31-1, got {self.max_refs}")
+        if not self.max_refs_per_prim >= 1.0:
+            raise InvalidInputError(
+                f"max_refs_per_prim: expected >= 1, got {self.max_refs_per_prim}"
+            )
+
+
+def grid_box(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the float32 grid box, widened so every axis has extent.
+
+    The scene box grows by ``BOX_MARGIN`` of its largest extent (or coordinate) and by at
+    least one float32 ulp.
+    """
+    lo64 = lo.astype(np.float64)
+    hi64 = hi.astype(np.float64)
+    coords = float(np.abs(np.concatenate([lo64, hi64])).max())
+    scale = max(float((hi64 - lo64).max()), coords, 1e-30)
+    pad = scale * BOX_MARGIN
+    g_lo = (lo64 - pad).astype(REAL)
+    g_hi = (hi64 + pad).astype(REAL)
+    g_lo = np.minimum(g_lo, np.nextafter(lo, np.float32(-np.inf)))
+    g_hi = np.maximum(g_hi, np.nextafter(hi, np.float32(np.inf)))
+    return g_lo.astype(REAL), g_hi.astype(REAL)
+
+
+def grid_resolution(extent: np.ndarray, n_cells_wanted: float) -> np.ndarray:
+    """Return ``(3,)`` int32 cells per axis for about ``n_cells_wanted`` cubic-ish cells.
+
+    Slusallek's ``R_a = e_a · cbrt(λn / V)``; axes that would get fewer than one cell get
+    one and the scale is re-solved over the others (see the module docstring).
+    """
+    e = np.asarray(extent, dtype=np.float64)
+    free = np.ones(3, dtype=bool)
+    res = np.ones(3, dtype=np.float64)
+    for _ in range(3):
+        k = int(free.sum())
+        if k == 0:
+            break
+        volume = float(np.prod(e[free]))
+        scale = (max(n_cells_wanted, 1.0) / volume) ** (1.0 / k)
+        res = np.where(free, e * scale, 1.0)
+        small = free & (res < 1.0)
+        if not small.any():
+            break
+        free &= ~small
+    out = np.clip(np.floor(res + 0.5), 1, MAX_RES_AXIS)
+    return out.astype(INDEX)
+
+
+def _physical_memory() -> int:
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+        return 2**34
+
+
+@cpu_kernel(parallel=True)
+def _prim_boxes(tri, lo, inv, margin, res, first, last):
+    """Write each triangle's cell range into ``first``/``last``; return their total cells.
+
+    Ranges cover the triangle's box widened by twice the cell margin (a superset of the
+    cells it overlaps); the total is int64.
+    """
+    n = tri.shape[0]
+    total = 0
+    for p in prange(n):
+        count = np.int64(1)
+        for a in range(3):
+            t_lo = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+            t_hi = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+            c0 = math.floor((np.float64(t_lo) - 2.0 * margin[a] - lo[a]) * inv[a])
+            c1 = math.floor((np.float64(t_hi) + 2.0 * margin[a] - lo[a]) * inv[a])
+            c0 = min(max(c0, 0), res[a] - 1)
+            c1 = min(max(c1, 0), res[a] - 1)
+            first[p, a] = c0
+            last[p, a] = c1
+            count *= c1 - c0 + 1
+        total += count
+    return total
+
+
+@cpu_kernel(parallel=True)
+def _pairs(tri, lo, size, margin, res, first, last, offsets, keys, values, fill):
+    """Count or write the cells each triangle overlaps.
+
+    ``fill`` False: counts into ``offsets[p]``; True: pairs written from ``offsets[p]``.
+    """
+    n = tri.shape[0]
+    n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
+    rx = np.int64(res[0])
+    ry = np.int64(res[1])
+    for c in prange(n_chunks):
+        b_lo = np.empty(3, dtype=np.float32)
+        b_hi = np.empty(3, dtype=np.float32)
+        for p in range(c * PRIM_CHUNK, min(n, (c + 1) * PRIM_CHUNK)):
+            x0 = first[p, 0]
+            y0 = first[p, 1]
+            z0 = first[p, 2]
+            x1 = last[p, 0]
+            y1 = last[p, 1]
+            z1 = last[p, 2]
+            slot = offsets[p] if fill else 0
+            if x0 == x1 and y0 == y1 and z0 == z1:
+                # Strictly inside one cell: it overlaps that cell.
+                if fill:
+                    keys[slot] = x0 + rx * (y0 + ry * np.int64(z0))
+                    values[slot] = p
+                else:
+                    offsets[p] = 1
+                continue
+            for z in range(z0, z1 + 1):
+                b_lo[2] = lo[2] + np.float32(z) * size[2] - margin[2]
+                b_hi[2] = lo[2] + np.float32(z + 1) * size[2] + margin[2]
+                for y in range(y0, y1 + 1):
+                    b_lo[1] = lo[1] + np.float32(y) * size[1] - margin[1]
+                    b_hi[1] = lo[1] + np.float32(y + 1) * size[1] + margin[1]
+                    for x in range(x0, x1 + 1):
+                        b_lo[0] = lo[0] + np.float32(x) * size[0] - margin[0]
+                        b_hi[0] = lo[0] + np.float32(x + 1) * size[0] + margin[0]
+                        if triangle_box_overlap(tri, p, b_lo, b_hi):
+                            if fill:
+                                keys[slot] = x + rx * (y + ry * np.int64(z))
+                                values[slot] = p
+                            slot += 1
+            if not fill:
+                offsets[p] = slot
+
+
+@cpu_kernel(parallel=True)
+def _cell_ranges(keys, n_cells):
+    """Return ``cell_start (n_cells + 1,)`` int32 of keys sorted by cell."""
+    n = keys.shape[0]
+    start = np.empty(n_cells + 1, dtype=np.int32)
+    for i in prange(n + 1):
+        prev = keys[i - 1] if i > 0 else -1
+        here = keys[i] if i < n else n_cells
+        for c in range(prev + 1, here + 1):
+            start[c] = i
+    return start
+
+
+def build_uniform(
+    mesh: TriangleMesh, options: UniformGridOptions, key: str
+) -> tuple[UniformGrid, np.ndarray]:
+    """Build the uniform grid; return it (no skip data) and the triangles ``(F, 3, 3)``."""
+    phases: dict[str, float] = {}
+    t0 = time.perf_counter()
+    tri = mesh.triangles()
+    n = tri.shape[0]
+    if n == 0:
+        raise InvalidInputError(f"{key}: the mesh has no triangles")
+    lo, hi = grid_box(*mesh.bounds())
+    extent = hi.astype(np.float64) - lo
+    wanted = options.density * n
+    memory_cells = _physical_memory() // (4 * 16)
+    cap = min(options.max_cells, memory_cells)
+    if wanted > cap:
+        raise InvalidInputError(
+            f"{key}: density λ={options.density} asks for {wanted:.4g} cells for {n} "
+            f"primitives, more than the cap of {cap} (max_cells={options.max_cells}, "
+            f"memory allows {memory_cells}); lower the density or raise max_cells"
+        )
+    res = grid_resolution(extent, wanted)
+    budget = min(options.max_refs, max(int(options.max_refs_per_prim * n), n))
+    first = np.empty((n, 3), dtype=INDEX)
+    last = np.empty((n, 3), dtype=INDEX)
+    while True:
+        inv = (res / extent).astype(np.float64)
+        margin = cell_margin(lo, hi, res)
+        bbox_pairs = _prim_boxes(
+            tri, lo.astype(np.float64), inv, margin.astype(np.float64), res, first, last
+        )
+        n_cells = int(np.prod(res.astype(np.int64)))
+        if bbox_pairs <= budget or n_cells == 1:
+            break
+        # Too many pairs (primitives spanning many cells): fewer cells, same shape.
+        shrink = max(budget / bbox_pairs, 1e-6) * 0.9
+        res = grid_resolution(extent, n_cells * shrink)
+        if int(np.prod(res.astype(np.int64))) >= n_cells:
+            res = np.maximum(res // 2, 1).astype(INDEX)
+    if bbox_pairs > 2**31 - 1:
+        raise InvalidInputError(f"{key}: {bbox_pairs} cell/primitive pairs exceed int32")
+    size = ((hi - lo) / res).astype(REAL)
+    phases["bounds"] = (time.perf_counter() - t0) * 1e3
+    t1 = time.perf_counter()
+    counts = np.empty(n, dtype=np.int64)
+    dummy_k = np.empty(0, dtype=np.int64)
+    dummy_v = np.empty(0, dtype=np.int32)
+    _pairs(tri, lo, size, margin, res, first, last, counts, dummy_k, dummy_v, False)
+    phases["count"] = (time.perf_counter() - t1) * 1e3
+    t1 = time.perf_counter()
+    offsets = np.empty(n, dtype=np.int64)
+    offsets[0] = 0
+    np.cumsum(counts[:-1], out=offsets[1:])
+    n_refs = int(offsets[-1] + counts[-1])
+    keys = np.empty(n_refs, dtype=np.int64)
+    values = np.empty(n_refs, dtype=np.int32)
+    _pairs(tri, lo, size, margin, res, first, last, offsets, keys, values, True)
+    phases["fill"] = (time.perf_counter() - t1) * 1e3
+    t1 = time.perf_counter()
+    keys, values = radix_sort(keys, values, max(1, (n_cells - 1).bit_length()))
+    phases["sort"] = (time.perf_counter() - t1) * 1e3
+    t1 = time.perf_counter()
+    cell_start = _cell_ranges(keys, n_cells)
+    phases["ranges"] = (time.perf_counter() - t1) * 1e3
+    grid = UniformGrid(
+        lo=lo,
+        hi=hi,
+        res=res.astype(INDEX),
+        cell_start=cell_start,
+        prim_index=np.ascontiguousarray(values, dtype=INDEX),
+        skip_kind=SKIP_NONE,
+        skip=np.zeros((n_cells, SKIP_COLUMNS[SKIP_NONE]), dtype=np.int16),
+        n_prims=n,
+        density=float(options.density),
+        phase_ms=phases,
+    )
+    return grid, tri
+
+
+@register(
+    "builder",
+    "grid.uniform",
+    options=UniformGridOptions,
+    default=True,
+    summary="uniform grid, λ cells per primitive, sort-based parallel build with exact overlap",
+    reference="Kalojanov & Slusallek 2009, A Parallel Algorithm for Construction of Uniform Grids",
+)
+def build_uniform_grid(
+    mesh: TriangleMesh, options: UniformGridOptions | None = None
+) -> UniformGrid:
+    """Build a uniform grid over ``mesh``'s triangles.
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+    options : UniformGridOptions, optional
+
+    Returns
+    -------
+    UniformGrid
+        With no skip data (``grid.skip`` then walks it like ``grid.dda``).
+
+    Raises
+    ------
+    InvalidInputError
+        The density asks for more cells than ``max_cells`` or memory allows.
+    """
+    grid, _ = build_uniform(mesh, options or UniformGridOptions(), "grid.uniform")
+    return grid

@@ -1,0 +1,347 @@
+"""The canonical uniform grid (``grid``) and the traversal layout derived from it.
+
+Canonical layout (:class:`UniformGrid`, what every grid builder emits)
+    A box ``[lo, hi]`` cut into ``res = (rx, ry, rz)`` equal cells of size
+    ``(hi - lo) / res``; cell ``(x, y, z)`` has the linear index ``x + rx·(y + ry·z)``
+    and lists the primitives ``prim_index[cell_start[c] : cell_start[c + 1]]``, in
+    increasing id order, each once. A primitive is listed in every cell whose box,
+    widened by :func:`cell_margin` on every side, it overlaps (exact triangle/box test),
+    so a ray point that rounding places a hair into the neighbouring cell still finds
+    the triangles of the cell it is really in. The box is the scene box widened by
+    :data:`BOX_MARGIN` of its largest extent, so a scene flat along an axis still has
+    cells of non-zero size.
+
+Skip data (``skip_kind``, ``skip``)
+    ``SKIP_NONE``: none (``skip`` is ``(n_cells, 0)``). ``SKIP_DISTANCE``: ``skip[c, 0]``
+    is the chessboard distance from cell ``c`` to the nearest non-empty cell (0 for a
+    non-empty cell), so the cube of cells within ``skip[c, 0] - 1`` of ``c`` is empty.
+    ``SKIP_MACRO``: ``skip[c] = (x0, y0, z0, x1, y1, z1)`` is an empty box of cells
+    containing ``c`` (inclusive bounds; the cell itself when it is not empty).
+
+Traversal layout (:class:`GridTrace`, :func:`trace_layout`)
+    The box interleaved as ``(lo_x, hi_x, lo_y, hi_y, lo_z, hi_z)`` (the root box of
+    :mod:`rayaccel.trace.ray_setup`), the cell size and resolution, the cell ranges, the
+    triangle rows copied in cell order (``tri (n_refs, 9)``) with their ids
+    (``tri_prim``), the skip data and its kind (``(1,)`` int32), and the mailbox size.
+    Bytes: 4 per cell, 4 per reference (canonical), 36 more per reference for the
+    copied rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_kernel
+from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+from rayaccel.errors import StructureInvariantError
+
+SKIP_NONE = 0
+SKIP_DISTANCE = 1
+SKIP_MACRO = 2
+SKIP_NAMES = {SKIP_NONE: "none", SKIP_DISTANCE: "distance", SKIP_MACRO: "macro_regions"}
+#: Columns of ``skip`` per kind.
+SKIP_COLUMNS = {SKIP_NONE: 0, SKIP_DISTANCE: 1, SKIP_MACRO: 6}
+
+#: The grid box is the scene box widened by this fraction of its largest extent.
+BOX_MARGIN = 2.0**-16
+#: Cells overlap their neighbours by this fraction of their size (plus coordinate ulps).
+CELL_MARGIN = 2.0**-10
+#: Largest resolution along one axis (macro regions store int16 cell coordinates).
+MAX_RES_AXIS = 32767
+
+CELL_BYTES = 4
+REF_BYTES = 4
+TRIANGLE_BYTES = 36
+
+
+def cell_margin(lo: FloatArray, hi: FloatArray, res: IntArray) -> FloatArray:
+    """Return the ``(3,)`` float32 widening of every cell box on each side.
+
+    A fraction :data:`CELL_MARGIN` of the cell size plus a few float32 ulps of the
+    coordinates, so rounding of ray points and cell planes (a few ulps) never puts a
+    point outside the widened box of the cell the DDA is in.
+    """
+    lo64 = lo.astype(np.float64)
+    hi64 = hi.astype(np.float64)
+    size = (hi64 - lo64) / res
+    return (size * CELL_MARGIN + (np.abs(lo64) + np.abs(hi64)) * 2.0**-21).astype(REAL)
+
+
+class GridTrace(NamedTuple):
+    """What the grid traversals read, as one kernel argument."""
+
+    box: FloatArray
+    lo: FloatArray
+    size: FloatArray
+    inv_size: FloatArray
+    res: IntArray
+    cell_start: IntArray
+    tri: FloatArray
+    tri_prim: IntArray
+    skip: np.ndarray
+    skip_kind: IntArray
+    mailbox: IntArray
+
+
+class UniformGridArrays(NamedTuple):
+    """The canonical arrays as one kernel argument."""
+
+    lo: FloatArray
+    hi: FloatArray
+    res: IntArray
+    cell_start: IntArray
+    prim_index: IntArray
+    skip: np.ndarray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class UniformGrid:
+    """Uniform grid; cell ``(x, y, z)`` is ``x + rx·(y + ry·z)`` (see the module docstring).
+
+    Attributes
+    ----------
+    lo, hi : (3,) float32
+        The grid box (the scene box widened by :data:`BOX_MARGIN`).
+    res : (3,) int32
+        Cells per axis, each in ``1..MAX_RES_AXIS``.
+    cell_start : (n_cells + 1,) int32
+        Cell ``c`` lists ``prim_index[cell_start[c]:cell_start[c + 1]]``.
+    prim_index : (n_refs,) int32
+        Primitive ids in cell order, increasing within a cell.
+    skip_kind : int
+        ``SKIP_NONE``, ``SKIP_DISTANCE`` or ``SKIP_MACRO``.
+    skip : (n_cells, SKIP_COLUMNS[skip_kind]) int16
+        The skip data of ``skip_kind``.
+    n_prims : int
+        Number of primitives of the mesh.
+    density : float
+        The density λ (cells per primitive) the resolution was derived from.
+    phase_ms : dict
+        Build milliseconds by phase.
+    """
+
+    lo: FloatArray
+    hi: FloatArray
+    res: IntArray
+    cell_start: IntArray
+    prim_index: IntArray
+    skip_kind: int
+    skip: np.ndarray
+    n_prims: int
+    density: float = 5.0
+    phase_ms: dict[str, float] = field(default_factory=dict)
+
+    def arrays(self) -> UniformGridArrays:
+        """Return the arrays as a NamedTuple kernels take as one argument."""
+        return UniformGridArrays(
+            self.lo, self.hi, self.res, self.cell_start, self.prim_index, self.skip
+        )
+
+    @property
+    def n_cells(self) -> int:
+        """Number of cells."""
+        return int(self.cell_start.shape[0] - 1)
+
+    @property
+    def n_refs(self) -> int:
+        """Number of cell/primitive references."""
+        return int(self.prim_index.shape[0])
+
+    def nbytes(self) -> int:
+        """Return the canonical size in bytes (cell ranges, references, skip data)."""
+        return int(self.cell_start.nbytes + self.prim_index.nbytes + self.skip.nbytes)
+
+    def info(self, inner_cost: float = 1.2, prim_cost: float = 1.0) -> dict[str, Any]:
+        """Return resolution, cells, empty fraction, references per primitive, bytes, phases.
+
+        (``inner_cost`` and ``prim_cost`` are unused: a grid has no SAH cost.)
+        """
+        _ = (inner_cost, prim_cost)
+        counts = np.diff(self.cell_start)
+        return {
+            "resolution": tuple(int(r) for r in self.res),
+            "n_cells": self.n_cells,
+            "n_refs": self.n_refs,
+            "density": self.density,
+            "empty_fraction": float(np.count_nonzero(counts == 0) / max(self.n_cells, 1)),
+            "refs_per_prim": self.n_refs / max(self.n_prims, 1),
+            "max_cell_refs": int(counts.max()) if counts.size else 0,
+            "skip": SKIP_NAMES[self.skip_kind],
+            "grid_bytes": self.nbytes(),
+            "build_phase_ms": {k: round(v, 3) for k, v in self.phase_ms.items()},
+        }
+
+    def validate(self, triangles: FloatArray | None = None) -> None:
+        """Check every invariant; raise :class:`StructureInvariantError` naming the first broken.
+
+        Checks: dtypes and shapes; resolution in range; ``cell_start`` starts at 0, ends
+        at ``n_refs`` and never decreases; ids in range, increasing within each cell, and
+        every primitive listed; the skip data of its kind (distances and macro boxes
+        empty and containing their cell); and, given ``triangles (F, 3, 3)``, every
+        triangle inside the grid box and every listed triangle's box overlapping its
+        widened cell.
+        """
+        for name in ("lo", "hi"):
+            a = getattr(self, name)
+            if a.dtype != REAL or a.shape != (3,) or not np.isfinite(a).all():
+                raise StructureInvariantError(f"grid: {name} must be finite float32 (3,)")
+        if not (self.lo < self.hi).all():
+            raise StructureInvariantError("grid: box has lo >= hi on some axis")
+        if self.res.dtype != INDEX or self.res.shape != (3,):
+            raise StructureInvariantError("grid: res must be int32 (3,)")
+        if (self.res < 1).any() or (self.res > MAX_RES_AXIS).any():
+            raise StructureInvariantError(f"grid: resolution {self.res} outside 1..{MAX_RES_AXIS}")
+        n_cells = int(np.prod(self.res.astype(np.int64)))
+        for name in ("cell_start", "prim_index"):
+            a = getattr(self, name)
+            if a.dtype != INDEX or a.ndim != 1 or not a.flags.c_contiguous:
+                raise StructureInvariantError(f"grid: {name} must be C-contiguous int32 (n,)")
+        if self.cell_start.shape[0] != n_cells + 1:
+            raise StructureInvariantError("grid: cell_start must have n_cells + 1 entries")
+        counts = np.diff(self.cell_start)
+        if self.cell_start[0] != 0 or self.cell_start[-1] != self.n_refs or (counts < 0).any():
+            raise StructureInvariantError("grid: cell_start must rise from 0 to n_refs")
+        if self.n_refs and (self.prim_index.min() < 0 or self.prim_index.max() >= self.n_prims):
+            raise StructureInvariantError("grid: prim_index entry out of range [0, n_prims)")
+        cell_of_ref = np.repeat(np.arange(n_cells, dtype=np.int64), counts)
+        if self.n_refs > 1:
+            same = cell_of_ref[1:] == cell_of_ref[:-1]
+            if (same & (self.prim_index[1:] <= self.prim_index[:-1])).any():
+                raise StructureInvariantError("grid: ids not increasing within a cell")
+        listed = np.zeros(self.n_prims, dtype=bool)
+        listed[self.prim_index] = True
+        if not listed.all():
+            raise StructureInvariantError(f"grid: primitive {int(np.argmin(listed))} in no cell")
+        self._validate_skip(counts)
+        if triangles is not None:
+            self._validate_geometry(triangles, cell_of_ref)
+
+    def _validate_skip(self, counts: IntArray) -> None:
+        columns = SKIP_COLUMNS.get(self.skip_kind)
+        if columns is None:
+            raise StructureInvariantError(f"grid: unknown skip kind {self.skip_kind}")
+        if self.skip.dtype != np.int16 or self.skip.shape != (self.n_cells, columns):
+            raise StructureInvariantError("grid: skip must be int16 (n_cells, columns of kind)")
+        occupied = (counts > 0).reshape(tuple(self.res[::-1]))  # [z, y, x]
+        if self.skip_kind == SKIP_DISTANCE:
+            dist = self.skip[:, 0].reshape(occupied.shape)
+            if (dist[occupied] != 0).any() or (dist[~occupied] < 1).any():
+                raise StructureInvariantError("grid: distance 0 iff the cell is non-empty")
+            if occupied.size <= 4096:
+                _check_distance_brute(occupied, dist)
+        elif self.skip_kind == SKIP_MACRO:
+            box = self.skip.astype(np.int64)
+            cells = np.arange(self.n_cells, dtype=np.int64)
+            rx, ry = int(self.res[0]), int(self.res[1])
+            xyz = np.stack([cells % rx, (cells // rx) % ry, cells // (rx * ry)], axis=1)
+            if ((box[:, :3] > xyz) | (box[:, 3:] < xyz) | (box[:, :3] < 0)).any() or (
+                box[:, 3:] >= self.res
+            ).any():
+                raise StructureInvariantError("grid: a macro region does not contain its cell")
+            table = _summed_volume(occupied)
+            inside = _box_sum(table, box)
+            empty = counts == 0
+            if (inside[empty] != 0).any():
+                raise StructureInvariantError("grid: a macro region holds a non-empty cell")
+            if (box[~empty, :3] != xyz[~empty]).any() or (box[~empty, 3:] != xyz[~empty]).any():
+                raise StructureInvariantError("grid: a non-empty cell's region is not itself")
+
+    def _validate_geometry(self, triangles: FloatArray, cell_of_ref: np.ndarray) -> None:
+        t_lo = triangles.min(axis=1)
+        t_hi = triangles.max(axis=1)
+        if (t_lo < self.lo).any() or (t_hi > self.hi).any():
+            raise StructureInvariantError("grid: a triangle lies outside the grid box")
+        if self.n_refs == 0:
+            return
+        size = (self.hi.astype(np.float64) - self.lo) / self.res
+        margin = cell_margin(self.lo, self.hi, self.res).astype(np.float64) * 2
+        rx, ry = int(self.res[0]), int(self.res[1])
+        xyz = np.stack(
+            [cell_of_ref % rx, (cell_of_ref // rx) % ry, cell_of_ref // (rx * ry)], axis=1
+        )
+        c_lo = self.lo + xyz * size - margin
+        c_hi = self.lo + (xyz + 1) * size + margin
+        p_lo = t_lo[self.prim_index]
+        p_hi = t_hi[self.prim_index]
+        bad = ((p_lo > c_hi) | (p_hi < c_lo)).any(axis=1)
+        if bad.any():
+            ref = int(np.argmax(bad))
+            raise StructureInvariantError(
+                f"grid: triangle {int(self.prim_index[ref])} listed in cell "
+                f"{int(cell_of_ref[ref])} it does not overlap"
+            )
+
+
+def _summed_volume(occupied: np.ndarray) -> np.ndarray:
+    """Return the ``(z+1, y+1, x+1)`` int64 summed-volume table of an occupancy grid."""
+    table = np.zeros(tuple(s + 1 for s in occupied.shape), dtype=np.int64)
+    table[1:, 1:, 1:] = occupied.astype(np.int64).cumsum(0).cumsum(1).cumsum(2)
+    return table
+
+
+def _box_sum(table: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """Return the occupied cells in each inclusive box ``(x0, y0, z0, x1, y1, z1)``."""
+    x0, y0, z0 = box[:, 0], box[:, 1], box[:, 2]
+    x1, y1, z1 = box[:, 3] + 1, box[:, 4] + 1, box[:, 5] + 1
+    return (
+        table[z1, y1, x1] - table[z0, y1, x1] - table[z1, y0, x1] - table[z1, y1, x0]
+        + table[z0, y0, x1] + table[z0, y1, x0] + table[z1, y0, x0] - table[z0, y0, x0]
+    )  # fmt: skip
+
+
+def _check_distance_brute(occupied: np.ndarray, dist: np.ndarray) -> None:
+    """Check a small distance field against its definition (brute force)."""
+    full = np.argwhere(occupied)
+    cells = np.argwhere(np.ones_like(occupied))
+    if full.size == 0:
+        return
+    cheb = np.abs(cells[:, None, :] - full[None, :, :]).max(axis=2).min(axis=1)
+    expect = np.minimum(cheb, np.iinfo(np.int16).max).reshape(occupied.shape)
+    if not np.array_equal(expect, dist):
+        raise StructureInvariantError("grid: distance field differs from its definition")
+
+
+def trace_layout(grid: UniformGrid, hit_rows: FloatArray, mailbox: int) -> GridTrace:
+    """Return the arrays the grid traversals read (see the module docstring).
+
+    ``hit_rows`` are the mesh's ``(F, 9)`` rows (:meth:`TriangleMesh.hit_rows`);
+    ``mailbox`` the per-ray mailbox size (0 disables it).
+    """
+    rows = _gather_rows(hit_rows, grid.prim_index)
+    return with_mailbox(
+        GridTrace(
+            box=np.array(
+                [grid.lo[0], grid.hi[0], grid.lo[1], grid.hi[1], grid.lo[2], grid.hi[2]], REAL
+            ),
+            lo=grid.lo.copy(),
+            size=((grid.hi - grid.lo) / grid.res).astype(REAL),
+            inv_size=(grid.res / (grid.hi - grid.lo)).astype(REAL),
+            res=grid.res.copy(),
+            cell_start=grid.cell_start,
+            tri=rows,
+            tri_prim=grid.prim_index,
+            skip=grid.skip,
+            skip_kind=np.array([grid.skip_kind], dtype=INDEX),
+            mailbox=np.zeros(1, dtype=INDEX),
+        ),
+        mailbox,
+    )
+
+
+def with_mailbox(layout: GridTrace, mailbox: int) -> GridTrace:
+    """Return ``layout`` with its mailbox size set (a ``(1,)`` int32 array)."""
+    return layout._replace(mailbox=np.array([mailbox], dtype=INDEX))
+
+
+@cpu_kernel(parallel=True)
+def _gather_rows(rows, index):
+    """Return ``rows[index]`` (parallel gather)."""
+    out = np.empty((index.shape[0], rows.shape[1]), dtype=rows.dtype)
+    for i in prange(index.shape[0]):
+        for k in range(rows.shape[1]):
+            out[i, k] = rows[index[i], k]
+    return out

@@ -1,0 +1,176 @@
+"""Grid family: resolution, caps, skip data, and the DDA's edge cases against the oracle.
+
+Registry conformance (tests/test_conformance.py) already runs every grid build key with
+``grid.dda`` and every traversal on ``grid.uniform``; here the skipping builders are
+also traced with ``grid.skip`` (their own traversal), on the edge cases of issue 17:
+rays along cell boundaries and grid faces, origins inside, on and outside the grid,
+axis-parallel rays with ±0.0 components, a flat scene, a single triangle, 100k copies
+of one triangle, and the teapot in a stadium.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import rayaccel
+import reference
+from rayaccel.errors import InvalidInputError, StructureInvariantError
+from rayaccel.grid.builders.skip import chessboard_distance, macro_regions
+from rayaccel.grid.builders.uniform import UniformGridOptions, grid_resolution
+from rayaccel.grid.layouts.uniform import SKIP_DISTANCE, SKIP_MACRO, UniformGrid
+from rayaccel.rays.batch import RayBatch
+
+#: (builder, traversal): each skipping builder with the traversal that reads its data.
+PAIRS = [
+    pytest.param("grid.uniform", "grid.dda", id="uniform-dda"),
+    pytest.param("grid.distance", "grid.skip", id="distance-skip"),
+    pytest.param("grid.macro_regions", "grid.skip", id="macro-skip"),
+]
+
+
+def _check(accel, rays: RayBatch, traversal: str, label: str = "") -> None:
+    tri = reference.tri9(accel.mesh)
+    ref = reference.oracle(accel.mesh, rays)
+    hits = accel.trace(rays, traversal=traversal)
+    reference.assert_closest_matches(tri, rays, hits, ref, label)
+    any_hits = accel.trace(rays, traversal=traversal, query="any")
+    reference.assert_any_matches(tri, rays, any_hits, ref, label)
+
+
+def _boundary_rays(accel, n: int, seed: int) -> RayBatch:
+    """Rays in cell-boundary planes and grid faces, axis-parallel with ±0.0 components,
+    with origins on cell corners, on the grid box and outside it."""
+    grid = accel.structure
+    rng = np.random.default_rng(seed)
+    lo = grid.lo.astype(np.float32)
+    size = ((grid.hi - grid.lo) / grid.res).astype(np.float32)
+    res = grid.res
+    origins = []
+    dirs = []
+    for _ in range(n):
+        cell = rng.integers(0, res + 1)
+        o = lo + cell.astype(np.float32) * size  # a cell corner (float32, as the DDA)
+        d = rng.normal(size=3)
+        zero = rng.integers(0, 3)
+        d[zero] = 0.0 if rng.random() < 0.5 else -0.0
+        if rng.random() < 0.3:
+            d[(zero + 1) % 3] = -0.0
+        if rng.random() < 0.3:  # start outside, along the same line
+            o = o - 3.0 * d * float(np.max(grid.hi - grid.lo))
+        origins.append(o)
+        dirs.append(d)
+    return RayBatch(np.array(origins, np.float32), np.array(dirs, np.float32))
+
+
+def test_resolution_formula():
+    assert tuple(grid_resolution(np.array([1.0, 1.0, 1.0]), 1000)) == (10, 10, 10)
+    assert tuple(grid_resolution(np.array([2.0, 1.0, 1.0]), 2000)) == (20, 10, 10)
+    # A flat box: one cell across, the 2D formula on the other axes.
+    assert tuple(grid_resolution(np.array([1.0, 1.0, 1e-9]), 400)) == (20, 20, 1)
+    assert tuple(grid_resolution(np.array([1.0, 1e-9, 1e-9]), 50)) == (50, 1, 1)
+
+
+def test_density_cap_raises():
+    mesh = reference.cube()
+    with pytest.raises(InvalidInputError, match="max_cells"):
+        rayaccel.build(mesh, "grid.uniform", density=1000.0, max_cells=1000)
+    with pytest.raises(InvalidInputError, match="density"):
+        UniformGridOptions(density=0.0)
+    with pytest.raises(InvalidInputError, match="max_refs_per_prim"):
+        UniformGridOptions(max_refs_per_prim=0.5)
+
+
+def test_info_and_validate(scenes_cache):
+    accel = scenes_cache.accel("grid.uniform", "teapot")
+    info = accel.info()
+    for key in ("resolution", "n_cells", "empty_fraction", "refs_per_prim", "bytes"):
+        assert key in info
+    assert set(info["build_phase_ms"]) >= {"count", "fill", "sort", "ranges"}
+    grid = accel.structure
+    grid.validate(accel.mesh.triangles())
+    broken = UniformGrid(grid.lo, grid.hi, grid.res, grid.cell_start,
+                         grid.prim_index[::-1].copy(), grid.skip_kind, grid.skip, grid.n_prims)
+    with pytest.raises(StructureInvariantError):
+        broken.validate()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_skip_data_matches_definition(seed):
+    """Distance field (brute force) and macro regions (empty, containing) on random grids."""
+    rng = np.random.default_rng(seed)
+    res = rng.integers(1, 12, size=3).astype(np.int32)
+    n_cells = int(np.prod(res))
+    occupied = rng.random(n_cells) < rng.choice([0.02, 0.1, 0.4])
+    occupied[rng.integers(0, n_cells)] = True
+    counts = occupied.astype(np.int32)
+    cell_start = np.zeros(n_cells + 1, np.int32)
+    np.cumsum(counts, out=cell_start[1:])
+    n = int(cell_start[-1])
+    prim_index = np.arange(n, dtype=np.int32)
+    lo = np.zeros(3, np.float32)
+    hi = np.ones(3, np.float32)
+    rx, ry, rz = (int(r) for r in res)
+    for kind, skip in ((SKIP_DISTANCE, chessboard_distance(cell_start, rx, ry, rz)),
+                       (SKIP_MACRO, macro_regions(cell_start, rx, ry, rz))):
+        UniformGrid(lo, hi, res, cell_start, prim_index, kind, skip, n).validate()
+
+
+@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+@pytest.mark.parametrize("scene", ["cornell-box", "teapot", "teapot-in-stadium"])
+def test_procedural_scenes(scenes_cache, builder, traversal, scene):
+    accel = scenes_cache.accel(builder, scene)
+    accel.validate()
+    _check(accel, scenes_cache.ray_set(scene), traversal, f"{builder}/{scene}")
+    _check(accel, reference.mixed_rays(accel.mesh, 400, seed=3), traversal, "mixed")
+
+
+@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+@pytest.mark.parametrize("scene", ["cornell-box", "teapot"])
+def test_cell_boundary_rays(scenes_cache, builder, traversal, scene):
+    accel = scenes_cache.accel(builder, scene)
+    _check(accel, _boundary_rays(accel, 600, seed=7), traversal, "boundary")
+
+
+@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+def test_flat_scene(builder, traversal):
+    """A single plane (flat along z): grazing, crossing and in-plane rays."""
+    mesh = reference.grid_plane(8, z=0.5)
+    accel = rayaccel.build(mesh, builder)
+    accel.validate()
+    assert accel.structure.res[2] == 1
+    lo, hi = mesh.bounds()
+    rng = np.random.default_rng(1)
+    n = 300
+    o = lo + rng.random((n, 3)) * (hi - lo)
+    o[:, 2] = 0.5  # in the plane
+    d = rng.normal(size=(n, 3))
+    d[: n // 2, 2] = 0.0
+    d[n // 4 : n // 2, 2] = -0.0
+    in_plane = RayBatch(o, d)
+    _check(accel, in_plane, traversal, "in-plane")
+    _check(accel, reference.mixed_rays(mesh, 400, seed=4), traversal, "mixed")
+    _check(accel, _boundary_rays(accel, 300, seed=5), traversal, "boundary")
+
+
+@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+def test_single_triangle(builder, traversal):
+    mesh = rayaccel.TriangleMesh([[0, 0, 0], [1, 0, 0], [0, 1, 0.3]], [[0, 1, 2]])
+    accel = rayaccel.build(mesh, builder)
+    accel.validate()
+    _check(accel, reference.mixed_rays(mesh, 400, seed=6), traversal, "single")
+    _check(accel, _boundary_rays(accel, 200, seed=8), traversal, "boundary")
+
+
+def test_copies_of_one_triangle():
+    """100k copies of one triangle: the reference budget lowers the resolution."""
+    faces = np.zeros((100_000, 3), np.int64)
+    faces[:, 1] = 1
+    faces[:, 2] = 2
+    mesh = rayaccel.TriangleMesh([[0, 0, 0], [1, 0.2, 0], [0.3, 1, 0.7]], faces)
+    accel = rayaccel.build(mesh, "grid.uniform")
+    accel.validate()
+    info = accel.info()
+    assert info["n_refs"] <= 16 * 100_000
+    rays = reference.subsample(reference.mixed_rays(mesh, 120, seed=9), 60)
+    _check(accel, rays, "grid.dda", "copies")
