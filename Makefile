@@ -49,8 +49,10 @@ test: $(STAMP) system-deps
 bench: $(STAMP) system-deps
 	$(BIN)/python benchmarks/bench_core.py --threads 2
 
+# ruff (style, docstrings) on everything; mypy on src/rayaccel ([tool.mypy] in pyproject.toml).
 lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/mypy
 
 # The documentation (Sphinx, pydata theme, numpydoc, gallery of examples/) into docs/_build/html.
 DOCS_STAMP := $(VENV)/.docs-stamp
@@ -64,6 +66,6 @@ docs: $(DOCS_STAMP)
 	@echo "documentation in docs/_build/html/index.html"
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis docs/_build docs/auto_examples docs/gen_modules \
+	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis .mypy_cache docs/_build docs/auto_examples docs/gen_modules \
 	  docs/sg_execution_times.rst
 	find src -name __pycache__ -type d -prune -exec rm -rf {} +

@@ -113,7 +113,7 @@ def register(
     stage: Stage = "after",
     default: bool = False,
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
-    """Decorator registering ``func`` as the variant ``key``.
+    """Return a decorator that registers ``func`` as the variant ``key``.
 
     ``stage`` applies to steps only: ``"after"`` (default) for a post-process of the
     built structure, ``"before"`` for a step that makes the references the builder
@@ -140,7 +140,7 @@ def register(
 
 
 def register_pausable(key: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
-    """Decorator registering ``start`` as the pausable form of the traversal ``key``.
+    """Return a decorator that registers ``start`` as the pausable form of traversal ``key``.
 
     ``start(structure, mesh, rays, cache=None)`` returns a state object whose
     ``next_hits()`` resumes every ray where it stopped and returns its next hit, and

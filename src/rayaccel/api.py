@@ -89,6 +89,7 @@ class Accel:
         Parameters
         ----------
         rays : RayBatch
+            The rays; their ``tmin``/``tmax`` bound each search.
         query : {"closest", "any"}
             ``"any"`` stops at the first hit found (``prim`` is some hit, not the closest).
         traversal : str, optional
@@ -292,6 +293,7 @@ def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
     Parameters
     ----------
     mesh : TriangleMesh
+        The triangles to build over; the returned :class:`Accel` keeps a reference.
     key : str, optional
         Builder registry key (``rayaccel list``), e.g. ``"bvh2.binned_sah"`` (the
         default, :data:`rayaccel.registry.DEFAULT_BUILD_KEY`),

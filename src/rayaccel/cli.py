@@ -29,9 +29,14 @@ import traceback
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rayaccel.errors import InvalidInputError, RayAccelError
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from rayaccel.registry import Role
 
 EXIT_ERROR = 1
 EXIT_USAGE = 2
@@ -153,7 +158,8 @@ def cmd_list(args: argparse.Namespace) -> int:
     from rayaccel.scene import catalog
 
     if args.json:
-        data = {
+        role_order: tuple[Role, ...] = ("builder", "step", "traversal")
+        data: dict[str, object] = {
             role: [
                 {"key": v.key, "structure": v.structure, "backend": v.backend,
                  "summary": v.summary, "reference": v.reference,
@@ -162,15 +168,15 @@ def cmd_list(args: argparse.Namespace) -> int:
                  **({"takes_refs": v.takes_refs} if v.role == "builder" else {})}
                 for v in registry.variants(role)
             ]
-            for role in ("builder", "step", "traversal")
+            for role in role_order
         }  # fmt: skip
-        data["configurations"] = registry.configurations()  # type: ignore[assignment]
-        data["counters"] = list(COUNTER_NAMES)  # type: ignore[assignment]
-        data["peers"] = {name: cls().available() for name, cls in PEERS.items()}  # type: ignore[assignment]
-        data["scenes"] = catalog.names()  # type: ignore[assignment]
+        data["configurations"] = registry.configurations()
+        data["counters"] = list(COUNTER_NAMES)
+        data["peers"] = {name: cls().available() for name, cls in PEERS.items()}
+        data["scenes"] = catalog.names()
         _out(json.dumps(data, indent=2, default=str))
         return 0
-    roles = (
+    roles: tuple[tuple[Role, str], ...] = (
         ("builder", "Builders"),
         ("step", "Build steps (chain as BUILDER+STEP; 'before' steps run ahead of the builder)"),
         ("traversal", "Traversals"),
@@ -299,8 +305,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     images: list[tuple[str, Any]] = []
     for builder in builders:
         accel = api.build(mesh, builder, **options)
-        for traversal in traversals or [None]:
+        traversal_or_default: list[str | None] = list(traversals) if traversals else [None]
+        for traversal in traversal_or_default:
             name = builder if traversal is None else f"{builder}+{traversal}"
+            image: npt.NDArray[Any]
             if args.view == "shade":
                 image = shade(accel, camera, traversal=traversal, ao_samples=args.ao,
                               ao_radius=args.ao_radius, seed=args.seed)  # fmt: skip

@@ -37,6 +37,7 @@ finished result if the run is interrupted.
 from __future__ import annotations
 
 import datetime
+import functools
 import importlib.metadata
 import os
 import platform
@@ -305,10 +306,23 @@ def timed_round_robin(
 
     The untimed run warms the caches with the function's own data, as a block of
     repeated passes would, so no pass pays for the previous function's; the rounds
-    spread every function over the same stretch of time. (On the kitchen, ``bvh2.stack``'s
-    ratio to Open3D came out 8–30% higher when each pass directly followed the other
-    system's than with both warmed.)
-    Returns the seconds of each function and the last result of each.
+    spread every function over the same stretch of time, so a noisy phase of the
+    machine falls on every function alike (``docs/performance.md``, "Tracing against
+    Embree", records what the other orders gave).
+
+    Parameters
+    ----------
+    fns : sequence of callable
+        The functions to time, called with no arguments.
+    repeats : int
+        Timed rounds.
+
+    Returns
+    -------
+    seconds : list of (repeats,) float64 ndarray
+        The time of each function in each round.
+    results : list
+        The last result of each function.
     """
     results: list[Any] = [None] * len(fns)
     seconds = [np.empty(repeats) for _ in fns]
@@ -509,7 +523,7 @@ class _Run:
         for builder in builders:
             self.ui.describe(f"compiling {builder} ({done + 1}/{n_kernels})")
             accel, first_ms, status = self._first_call(
-                lambda b=builder: api.build(mesh, b, **self.config.builder_options)
+                functools.partial(api.build, mesh, builder, **self.config.builder_options)
             )
             done += 1
             self.emit_compile(builder, None, "build", first_ms, status, mesh)
@@ -523,8 +537,8 @@ class _Run:
                                 f"compiling {traversal} {variant} {mode} ({done + 1}/{n_kernels})"
                             )
                             _, first_ms, status = self._first_call(
-                                lambda a=accel, t=traversal, q=query, s=stats, r=rays: a.trace(
-                                    r, query=q, traversal=t, stats=s
+                                functools.partial(
+                                    accel.trace, rays, query=query, traversal=traversal, stats=stats
                                 )
                             )
                             done += 1
@@ -682,7 +696,7 @@ class _Run:
             if rays.n_rays < rayset.n_rays:
                 record["note"] = f"first {rays.n_rays} of {rayset.n_rays} rays"
             allowed = PEER_MISMATCH_FRACTION * (len(ref.index) if ref is not None else 0)
-            if mismatches is not None and mismatches > allowed:
+            if ref is not None and mismatches is not None and mismatches > allowed:
                 self.emit({"record": "invalid", **record})
                 self.note(f"{base['scene']}: {peer.name} {kind}: {mismatches} rays differ "
                           f"from the {ref.source} oracle; not timed")  # fmt: skip
@@ -818,6 +832,7 @@ def run_bench(
     Parameters
     ----------
     config : BenchConfig
+        Scenes, ray sets, builders, traversals, peers, thread counts and repeats.
     on_record : callable, optional
         Called with every record as soon as it is finished (e.g.
         :meth:`rayaccel.bench.report.JsonlWriter.append`).

@@ -201,7 +201,8 @@ class EmbreePeer(Peer):
         """Any-hit test, see :meth:`Peer.occluded`."""
         origin, direction, tfar = self._prepared(rays)
         out = self._scene.run(origin, direction, dists=tfar.copy(), query="OCCLUDED")
-        return np.asarray(out) != -1
+        occluded: BoolArray = np.asarray(out) != -1
+        return occluded
 
 
 class Open3DPeer(Peer):

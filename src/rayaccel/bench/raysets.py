@@ -99,6 +99,7 @@ def scene_camera(
     Parameters
     ----------
     mesh : TriangleMesh
+        The scene; its bounding box is framed when it has no preset.
     name : str, optional
         Catalog name (or path) used to look up a preset.
     width, height : int
@@ -146,6 +147,7 @@ def standard_raysets(
     Parameters
     ----------
     mesh : TriangleMesh
+        The scene the rays are generated for.
     name : str, optional
         Catalog name of the scene, for its camera preset.
     kinds : sequence of str

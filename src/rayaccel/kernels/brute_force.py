@@ -79,7 +79,9 @@ def brute_force_trace(
     tri : (F, 9) float32
         Triangle corners, one row per triangle.
     origin, direction : (n, 3) float32
+        Ray origins and directions (not necessarily unit length).
     tmin, tmax : (n,) float32
+        Ray intervals.
     query : int
         ``QUERY_CLOSEST`` or ``QUERY_ANY``.
 

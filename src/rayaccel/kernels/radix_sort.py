@@ -85,16 +85,24 @@ def radix_sort(keys: np.ndarray, values: np.ndarray, n_bits: int) -> tuple[np.nd
 
     Parameters
     ----------
-    keys : (n,) int64, non-negative
+    keys : (n,) int64
+        Sort keys, non-negative.
     values : (n,) int32
+        Payload carried along with its key.
     n_bits : int
         Significant key bits (keys must be below ``2**n_bits``).
+
+    Returns
+    -------
+    keys, values : (n,) int64, (n,) int32
+        New arrays, sorted; equal keys keep their input order.
     """
     n = keys.shape[0]
     n_chunks = int(min(max(1, n // MIN_CHUNK), 4 * numba.get_num_threads()))
-    return _radix_sort_kernel(
+    sorted_pair: tuple[np.ndarray, np.ndarray] = _radix_sort_kernel(
         np.ascontiguousarray(keys, dtype=np.int64),
         np.ascontiguousarray(values, dtype=np.int32),
         int(n_bits),
         n_chunks,
     )
+    return sorted_pair

@@ -14,9 +14,11 @@ when statistics were requested.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from rayaccel.dtypes import INDEX, REAL, BoolArray, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
@@ -54,7 +56,7 @@ def _as_interval(name: str, value: object, n: int) -> FloatArray:
     return np.ascontiguousarray(array, dtype=REAL)
 
 
-@dataclass(frozen=True, slots=True, eq=False)
+@dataclass(frozen=True, slots=True, eq=False, init=False)
 class RayBatch:
     """A batch of rays ``o + t·d`` for ``t`` in ``[tmin, tmax]``.
 
@@ -63,35 +65,37 @@ class RayBatch:
     origin, direction : (n, 3) array_like of float
         Coerced once to C-contiguous float32. A single (3,) direction or origin
         is broadcast to the other's length.
-    tmin, tmax : float or (n,) array_like of float
+    tmin, tmax : float or (n,) array_like of float, optional
         Ray interval; scalars are broadcast. Defaults ``0`` and ``inf``.
     """
 
     origin: FloatArray
     direction: FloatArray
-    tmin: FloatArray = field(default=None)  # type: ignore[assignment]
-    tmax: FloatArray = field(default=None)  # type: ignore[assignment]
+    tmin: FloatArray
+    tmax: FloatArray
 
-    def __post_init__(self) -> None:
-        origin_raw = np.asarray(self.origin)
-        direction_raw = np.asarray(self.direction)
+    def __init__(
+        self,
+        origin: npt.ArrayLike,
+        direction: npt.ArrayLike,
+        tmin: npt.ArrayLike | None = None,
+        tmax: npt.ArrayLike | None = None,
+    ) -> None:
+        origin_raw = np.asarray(origin)
+        direction_raw = np.asarray(direction)
         n = None
         if origin_raw.ndim == 2:
             n = origin_raw.shape[0]
         elif direction_raw.ndim == 2:
             n = direction_raw.shape[0]
-        origin = _as_vectors("origins", origin_raw, n)
-        n = origin.shape[0]
-        direction = _as_vectors("directions", direction_raw, n)
-        tmin = _as_interval("tmin", 0.0 if self.tmin is None else self.tmin, n)
-        tmax = _as_interval("tmax", np.inf if self.tmax is None else self.tmax, n)
-        for name, value in (
-            ("origin", origin),
-            ("direction", direction),
-            ("tmin", tmin),
-            ("tmax", tmax),
-        ):
-            object.__setattr__(self, name, value)
+        origin_f32 = _as_vectors("origins", origin_raw, n)
+        n = origin_f32.shape[0]
+        direction_f32 = _as_vectors("directions", direction_raw, n)
+        # The dataclass is frozen: fields are set once, here, through object.__setattr__.
+        object.__setattr__(self, "origin", origin_f32)
+        object.__setattr__(self, "direction", direction_f32)
+        object.__setattr__(self, "tmin", _as_interval("tmin", 0.0 if tmin is None else tmin, n))
+        object.__setattr__(self, "tmax", _as_interval("tmax", np.inf if tmax is None else tmax, n))
 
     def __len__(self) -> int:
         return int(self.origin.shape[0])
@@ -108,10 +112,24 @@ class RayBatch:
         """
         finite = np.isfinite(self.origin).all(axis=1) & np.isfinite(self.direction).all(axis=1)
         nonzero = (self.direction != 0).any(axis=1)
-        return finite & nonzero & (self.tmin <= self.tmax)
+        valid: BoolArray = finite & nonzero & (self.tmin <= self.tmax)
+        return valid
 
-    def subset(self, index: object) -> RayBatch:
-        """Return the rays selected by ``index`` (a slice, mask or index array)."""
+    def subset(
+        self, index: slice | npt.NDArray[np.bool_] | npt.NDArray[np.integer[Any]]
+    ) -> RayBatch:
+        """Return the rays selected by ``index``.
+
+        Parameters
+        ----------
+        index : slice, (n,) bool ndarray or (k,) int ndarray
+            The rows to keep, as for numpy indexing.
+
+        Returns
+        -------
+        RayBatch
+            A new batch of the selected rays (copies of the rows).
+        """
         return RayBatch(
             self.origin[index], self.direction[index], self.tmin[index], self.tmax[index]
         )

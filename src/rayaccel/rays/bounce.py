@@ -117,9 +117,8 @@ def _hit_frames(
     length = np.sqrt(_dot(normal, normal))
     keep = (length > 0.0) & np.isfinite(length) & np.isfinite(_dot(points, points))
     if not keep.all():
-        source, points, origin, direction, t, normal, length = (
-            array[keep] for array in (source, points, origin, direction, t, normal, length)
-        )
+        source, points, origin = source[keep], points[keep], origin[keep]
+        direction, t, normal, length = direction[keep], t[keep], normal[keep], length[keep]
     normal /= length[:, None]
     # Face the incoming ray: the normal points against its direction
     normal *= np.where(_dot(normal, direction) > 0.0, -1.0, 1.0)[:, None]
@@ -246,7 +245,8 @@ def cosine_hemisphere(normals: F64Array, u1: F64Array, u2: F64Array) -> F64Array
     m = nx * ny * k
     tangent = np.stack([1.0 + sign * nx * nx * k, sign * m, -sign * nx], axis=1)
     bitangent = np.stack([m, sign + ny * ny * k, -ny], axis=1)
-    return x[:, None] * tangent + y[:, None] * bitangent + z[:, None] * normals
+    directions: F64Array = x[:, None] * tangent + y[:, None] * bitangent + z[:, None] * normals
+    return directions
 
 
 def diffuse_rays(
@@ -325,7 +325,9 @@ def _light_points(light: object, count: int, rng: np.random.Generator) -> F64Arr
     root = np.sqrt(u[:, 1])
     b0 = 1.0 - root
     b1 = u[:, 2] * root
-    return b0[:, None] * a[tri] + b1[:, None] * b[tri] + (1.0 - b0 - b1)[:, None] * c[tri]
+    b2 = 1.0 - b0 - b1
+    points: F64Array = b0[:, None] * a[tri] + b1[:, None] * b[tri] + b2[:, None] * c[tri]
+    return points
 
 
 def shadow_rays(

@@ -73,7 +73,8 @@ def _as_fov(value: object) -> float:
 
 
 def _unit(vector: F64Array) -> F64Array:
-    return vector / np.linalg.norm(vector)
+    unit: F64Array = vector / np.linalg.norm(vector)
+    return unit
 
 
 @dataclass(frozen=True, slots=True)
@@ -327,9 +328,9 @@ def frame_bounds(
     distance = margin * radius / math.sin(min(half_v, half_h))
     eye = center - distance * view
     return PinholeCamera(
-        eye=tuple(eye.tolist()),  # type: ignore[arg-type]
-        target=tuple(center.tolist()),  # type: ignore[arg-type]
-        up=tuple(up_v.tolist()),  # type: ignore[arg-type]
+        eye=tuple(eye.tolist()),
+        target=tuple(center.tolist()),
+        up=tuple(up_v.tolist()),
         fov_deg=fov,
         width=width,
         height=height,

@@ -140,6 +140,8 @@ class HeatScale:
             Fitted defaults: ``vmin`` is the smallest positive value (log) or 0
             (linear), ``vmax`` the largest value; a degenerate range is widened
             to ``[vmin, 2·vmin]`` (``[0, 1]`` if everything is 0).
+        log : bool
+            Logarithmic (default) or linear mapping.
 
         Returns
         -------
@@ -166,6 +168,7 @@ class HeatScale:
         Parameters
         ----------
         values : array_like of float
+            Counter values, any shape.
 
         Returns
         -------
@@ -201,8 +204,8 @@ class HeatScale:
                 if len(inner) + 2 <= max_ticks:
                     break
             if len(inner) + 2 > max_ticks:  # many decades: every k-th power of ten
-                step = math.ceil(len(inner) / max(max_ticks - 2, 1))
-                inner = inner[::step]
+                stride = math.ceil(len(inner) / max(max_ticks - 2, 1))
+                inner = inner[::stride]
         else:
             span = self.vmax - self.vmin
             raw = span / max(max_ticks - 1, 1)
@@ -241,7 +244,9 @@ def colorize(values: npt.ArrayLike, scale: HeatScale) -> U8Array:
     Parameters
     ----------
     values : array_like of float, shape ``S``
+        Counter values.
     scale : HeatScale
+        The scale that maps them to ``[0, 1]`` along the gradient.
 
     Returns
     -------
@@ -301,12 +306,15 @@ def trace_counters(
     Parameters
     ----------
     accel : Accel
+        The structure to trace.
     camera : PinholeCamera
+        Its rays are traced in row-major pixel order.
     metric : str
         Counter name (``rayaccel.COUNTER_NAMES``).
     traversal : str, optional
-        Traversal registry key; default: the structure's stack traversal.
+        Traversal registry key; default: the structure's default traversal.
     query : {"closest", "any"}
+        Closest-hit or any-hit rays.
 
     Returns
     -------
@@ -331,6 +339,7 @@ def legend_image(scale: HeatScale, *, width: int = 640, height: int = 140) -> U8
     Parameters
     ----------
     scale : HeatScale
+        The scale of the images the legend goes with.
     width, height : int
         Size of the image in pixels.
 
@@ -385,6 +394,7 @@ def write_png(path: str | os.PathLike[str], image: npt.ArrayLike) -> Path:
     path : str or path-like
         Destination; its folder must exist.
     image : array_like of uint8
+        ``(h, w, 3)`` RGB or ``(h, w)`` grey pixels.
 
     Returns
     -------

@@ -26,6 +26,7 @@ import numpy.typing as npt
 
 from rayaccel.api import Accel
 from rayaccel.errors import InvalidInputError
+from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.rays.bounce import ambient_occlusion_rays
 from rayaccel.rays.camera import PinholeCamera
 
@@ -47,8 +48,8 @@ def srgb_encode(linear: npt.ArrayLike) -> U8Array:
 
 def ambient_visibility(
     accel: Accel,
-    rays: object,
-    hits: object,
+    rays: RayBatch,
+    hits: HitBatch,
     normals: npt.ArrayLike,
     *,
     samples: int,
@@ -61,6 +62,7 @@ def ambient_visibility(
     Parameters
     ----------
     accel : Accel
+        The structure the AO rays are traced against.
     rays : RayBatch
         The primary rays.
     hits : HitBatch
@@ -87,9 +89,9 @@ def ambient_visibility(
         normals,
         n_per_hit=samples,
         radius=radius,
-        seed=seed,  # type: ignore[arg-type]
+        seed=seed,
     )
-    n = len(hits)  # type: ignore[arg-type]
+    n = len(hits)
     visibility = np.ones(n, dtype=np.float64)
     if ao_rays.n_rays == 0:
         return visibility
@@ -117,9 +119,11 @@ def shade(
     Parameters
     ----------
     accel : Accel
+        The structure to trace; its mesh supplies the normals.
     camera : PinholeCamera
+        One primary ray per pixel.
     traversal : str, optional
-        Traversal registry key; default the structure's stack traversal.
+        Traversal registry key; default the structure's default traversal.
     ao_samples : int
         Ambient-occlusion rays per pixel; 0 (default) disables AO.
     ao_radius : float, optional

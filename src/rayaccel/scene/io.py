@@ -1,4 +1,4 @@
-"""Reading scene files into a :class:`~rayaccel.scene.mesh.TriangleMesh`.
+r"""Reading scene files into a :class:`~rayaccel.scene.mesh.TriangleMesh`.
 
 :func:`load_mesh` reads Wavefront OBJ with its own parser and PLY, STL, GLB and
 glTF through trimesh (``trimesh.load(..., force="mesh", process=False)``, so
@@ -11,7 +11,7 @@ follows the OBJ specification (Wavefront Technologies, *Advanced Visualizer*
 manual, Appendix B1, "Object Files (.obj)"), geometry only: ``v x y z [w]``
 (``w`` and trailing vertex colours are ignored), ``f`` with ``a``, ``a/b``,
 ``a//c`` and ``a/b/c`` references, negative (relative) indices, polygons
-fan-triangulated as ``(0, k, k + 1)``, ``\\`` line continuation, any mix of
+fan-triangulated as ``(0, k, k + 1)``, ``\`` line continuation, any mix of
 spaces and tabs, CRLF line ends, ``#`` comments. Grouping, material, texture and
 normal statements are skipped; free-form geometry and unknown statements are
 errors, because dropping them would return a wrong mesh silently. Every error

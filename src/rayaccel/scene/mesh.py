@@ -9,9 +9,10 @@ are kept (a correct ray/triangle test never reports a hit on them).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
@@ -65,7 +66,7 @@ def _coerce_faces(faces: object, n_vertices: int) -> IntArray:
     return np.ascontiguousarray(array, dtype=INDEX)
 
 
-@dataclass(frozen=True, slots=True, eq=False)
+@dataclass(frozen=True, slots=True, eq=False, init=False)
 class TriangleMesh:
     """An indexed triangle mesh.
 
@@ -75,7 +76,7 @@ class TriangleMesh:
         Vertex positions; coerced once to C-contiguous float32. Every vertex must be finite.
     faces : (F, 3) array_like of int
         Vertex indices of each triangle; coerced to int32, each in ``[0, V)``; ``F >= 1``.
-    name : str
+    name : str, optional
         A label used in reports.
 
     Raises
@@ -87,12 +88,14 @@ class TriangleMesh:
 
     vertices: FloatArray
     faces: IntArray
-    name: str = field(default="mesh")
+    name: str
 
-    def __post_init__(self) -> None:
-        vertices = _coerce_vertices(self.vertices)
-        object.__setattr__(self, "vertices", vertices)
-        object.__setattr__(self, "faces", _coerce_faces(self.faces, vertices.shape[0]))
+    def __init__(self, vertices: npt.ArrayLike, faces: npt.ArrayLike, name: str = "mesh") -> None:
+        coerced = _coerce_vertices(vertices)
+        # The dataclass is frozen: fields are set once, here, through object.__setattr__.
+        object.__setattr__(self, "vertices", coerced)
+        object.__setattr__(self, "faces", _coerce_faces(faces, coerced.shape[0]))
+        object.__setattr__(self, "name", name)
         self.vertices.flags.writeable = False
         self.faces.flags.writeable = False
 
@@ -124,7 +127,7 @@ class TriangleMesh:
         wide = tri.astype(np.float64)
         cross = np.cross(wide[:, 1] - wide[:, 0], wide[:, 2] - wide[:, 0])
         degenerate = ~np.any(cross != 0.0, axis=1)
-        rows = tri.reshape(-1, 9).copy()
+        rows: FloatArray = tri.reshape(-1, 9).copy()
         rows[degenerate, 3:6] = rows[degenerate, 0:3]
         rows[degenerate, 6:9] = rows[degenerate, 0:3]
         return rows
@@ -138,7 +141,8 @@ class TriangleMesh:
         """Return the ``(F,)`` float32 triangle areas (computed in float64)."""
         tri = self.triangles().astype(np.float64)
         cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        return (0.5 * np.linalg.norm(cross, axis=1)).astype(REAL)
+        areas: FloatArray = (0.5 * np.linalg.norm(cross, axis=1)).astype(REAL)
+        return areas
 
     def normals(self) -> FloatArray:
         """Return ``(F, 3)`` float32 unit geometric normals (zero for zero-area triangles)."""

@@ -64,7 +64,7 @@ def _positive_float(name: str, value: object, high: float = math.inf) -> float:
 
 
 def _label(base: str, **params: object) -> str:
-    """``base`` followed by the non-default parameters, e.g. ``sphereflake(level=3)``."""
+    """Return ``base`` followed by the non-default parameters, e.g. ``sphereflake(level=3)``."""
     shown = ", ".join(f"{key}={value}" for key, value in params.items() if value is not None)
     return f"{base}({shown})" if shown else base
 
@@ -208,7 +208,7 @@ def triangle_soup(
 
 @functools.cache
 def _icosphere(subdivisions: int) -> tuple[F64Array, I64Array]:
-    """Unit icosphere: ``20 * 4**subdivisions`` outward (counter-clockwise) triangles."""
+    """Return the unit icosphere: ``20 * 4**subdivisions`` outward (counter-clockwise) triangles."""
     t = (1.0 + math.sqrt(5.0)) / 2.0
     vertices = np.array(
         [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0],
@@ -276,7 +276,7 @@ def _rotations_from_z(directions: F64Array) -> F64Array:
 
 @functools.cache
 def _spd_child_directions() -> F64Array:
-    """The nine unit offsets of SPD ``balls.c`` for a sphere whose up axis is ``+z``.
+    """Return the nine unit offsets of SPD ``balls.c`` for a sphere whose up axis is ``+z``.
 
     Six lie on the equator 60 degrees apart and three on the upper hemisphere at
     ``asin(2 / sqrt 6)`` elevation, 120 degrees apart; the lower hemisphere is
@@ -452,7 +452,7 @@ def teapot(subdivisions: int = 8) -> TriangleMesh:
 
 
 def _box_inward(lo: F64Array, hi: F64Array) -> tuple[F64Array, I64Array]:
-    """The six faces of an axis-aligned box as 12 triangles facing inwards."""
+    """Return the six faces of an axis-aligned box as 12 triangles facing inwards."""
     x0, y0, z0 = lo
     x1, y1, z1 = hi
     quads = np.array(

@@ -69,7 +69,9 @@ def run_trace(
     layout_arrays : NamedTuple of arrays
         What the kernel's ``layout`` argument receives.
     rays : RayBatch
+        The rays to trace.
     query : {"closest", "any"}
+        Closest hit, or stop at the first hit found (validated here).
     stats : bool
         Allocate per-ray counters and return them in ``hits.stats``.
     overflow_hint : str

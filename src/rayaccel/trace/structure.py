@@ -58,6 +58,7 @@ class QualityMetrics(Protocol):
         Parameters
         ----------
         triangles : (n, 3, 3) float32 ndarray
+            Corners of the mesh's triangles (``TriangleMesh.triangles()``).
         epo : bool
             Include ``"epo"``, the end-point overlap.
         segments : (origin, direction, tmin, t_hit), optional

@@ -103,7 +103,8 @@ class Bvh2:
 
     def depths(self) -> IntArray:
         """Return the ``(n_nodes,)`` depth of every node (root 0)."""
-        return _node_depths(self.node_first, self.node_count)
+        depths: IntArray = _node_depths(self.node_first, self.node_count)
+        return depths
 
     def depth(self) -> int:
         """Return the depth of the deepest leaf (a single-leaf tree has depth 0)."""
@@ -417,6 +418,7 @@ def pack_bvh2(bvh: Bvh2, hit_rows: FloatArray) -> PackedBvh2:
     Parameters
     ----------
     bvh : Bvh2
+        The canonical tree; it is read, not changed.
     hit_rows : (F, 9) float32
         ``TriangleMesh.hit_rows()`` of the mesh the tree was built over.
     """

@@ -70,7 +70,8 @@ class LinkedTree(NamedTuple):
     lo: FloatArray
     hi: FloatArray
     first: IntArray
-    count: IntArray
+    # Shadows tuple.count, which nothing calls on this record (builders read ``tree.count``).
+    count: IntArray  # type: ignore[assignment]
     prim_index: IntArray
 
 
@@ -330,6 +331,7 @@ def linked_to_canonical(
         Merge subtrees of at most ``max_leaf_size`` references into one leaf when the
         SAH says a leaf is no more expensive.
     max_leaf_size : int
+        Largest subtree, in references, that ``collapse`` may merge into one leaf.
     inner_cost, prim_cost : float
         SAH constants of the collapse decision.
     """

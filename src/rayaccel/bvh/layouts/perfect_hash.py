@@ -56,7 +56,8 @@ class PerfectHash:
         """Return the values of ``keys`` (which must be among the keys hashed)."""
         k = np.asarray(keys, dtype=np.int64)
         n_table, n_disp = self.table.shape[0], self.disp.shape[0]
-        return self.table[(k % n_table + self.disp[k % n_disp]) % n_table]
+        values: IntArray = self.table[(k % n_table + self.disp[k % n_disp]) % n_table]
+        return values
 
     def nbytes(self) -> int:
         """Bytes of both tables."""
@@ -160,6 +161,7 @@ def build_perfect_hash(
     keys : (n,) int64
         Distinct non-negative keys.
     values : (n,) int32
+        The value each key maps to.
     n_table : int, optional
         ``|T|``; default ``n`` (minimal). Grown by ``max(4, 5%)`` until every bucket fits.
     n_disp : int, optional

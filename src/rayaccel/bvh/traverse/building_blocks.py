@@ -43,7 +43,7 @@ def box_exit_py(box, row, col, ox, oy, oz, ix, iy, iz, fx, fy, fz):
 
 
 def pick_py(first, a, b):
-    """``a if first else b``, kept a branch (:func:`rayaccel._jit.keep_branch`).
+    """Return ``a if first else b``, kept a branch (:func:`rayaccel._jit.keep_branch`).
 
     For a traversal's next node: as a select it would wait for the box test that
     decides it; as a branch the CPU predicts it and fetches the node at once.
