@@ -3,9 +3,9 @@
 Runs the ``rayaccel bench`` harness (compile, validate against the oracle, warm up,
 median and best of k timed passes) on the shared interior scenes with primary,
 diffuse and shadow rays, with the peers (Open3D's Embree, embreex, trimesh) on the
-same rays, then prints a markdown table for the README and writes every record to
-``benchmarks/results/bench_core-<UTC time>.jsonl`` (atomically, after each
-measurement, so an interrupted run keeps what it finished).
+same rays, then prints a markdown table (the form of ``docs/performance.md``) and
+writes every record to ``benchmarks/results/bench_core-<UTC time>.jsonl``
+(atomically, after each measurement, so an interrupted run keeps what it finished).
 
     python benchmarks/bench_core.py
     python benchmarks/bench_core.py --scenes staircase living_room kitchen --threads 2

@@ -2,7 +2,8 @@
 
 Each node contributes ``C_inner·A(n)/A(root)`` (inner) or ``C_prim·N(n)·A(n)/A(root)``
 (leaf), the terms of the SAH cost (C_inner 1.2, C_prim 1); the sums per depth band
-show at which levels two builders differ (README, "Builders: tree quality").
+show at which levels two builders differ (``docs/performance.md``, "Why PLOC beats
+top-down SAH here").
 
     RAYACCEL_SCENE_PATH=../shared/scenes python benchmarks/sah_by_depth.py kitchen \\
         bvh2.binned_sah bvh2.ploc bvh2.binned_sah+reinsert

@@ -3,11 +3,10 @@
 numpy asks Linux for transparent huge pages (``madvise(MADV_HUGEPAGE)``) on every
 array of 4 MiB or more, but arrays that numba allocates inside a kernel come from
 ``malloc`` with no such advice. Where the kernel's ``transparent_hugepage`` mode is
-``madvise`` (the common default), such arrays are faulted in 4 KiB pages: on this
-project's 2-core VM, the first touch of a 300 MB array allocated in a jitted function
-cost 125–180 ms that way against 30–35 ms with the advice (best of 3 repeats).
-A builder allocates hundreds of MB per million triangles, so the difference is a
-large share of a build.
+``madvise`` (the common default), such arrays are faulted in 4 KiB pages, 512 page
+faults where a huge page takes one. A builder allocates hundreds of MB per million
+triangles and touches them once, so those faults are a large share of a build (the
+first-touch timings are in ``docs/performance.md``, What was tried, Builders).
 
 :func:`advise_huge_pages` gives the advice numpy gives (on the 2 MiB-aligned interior
 of an array of at least 4 MiB, before its pages are touched); :func:`empty_huge`,

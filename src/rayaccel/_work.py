@@ -20,9 +20,10 @@ none is left::
 it is a ctypes call, and numba will not cache such a kernel. Items are taken in order,
 so a list sorted largest first is scheduled largest first. Which thread runs an item
 changes from run to run, so kernels keep every item's output to itself (results stay
-identical for any thread count). This took the 1→2-thread speed-up of ``bvh2.stack``
-on the staircase's shadow rays from 1.50× to 1.96×, and the kitchen's binned SAH and
-SBVH builds to 0.86× their time (README, Performance).
+identical for any thread count). With a shared counter an idle thread always finds the
+next item, so a second thread helps even when costs are uneven; the traversal and
+builder measurements are in ``docs/performance.md`` (What was tried, "Work
+distribution").
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Benchmark output: JSONL records written atomically, and tables for terminals and READMEs.
+"""Benchmark output: JSONL records written atomically, and tables for terminals and docs.
 
 :class:`JsonlWriter` keeps every record of a results file in memory and, for each
 new record, rewrites the **whole** file into a temporary file in the same folder,
@@ -190,7 +190,7 @@ def table_rows(records: Iterable[Record]) -> list[list[str]]:
 
 
 def markdown_table(records: Iterable[Record]) -> str:
-    """Return the benchmark table as GitHub markdown (for the README)."""
+    """Return the benchmark table as GitHub markdown (as in ``docs/performance.md``)."""
     rows = table_rows(records)
     align = ["---:" if c in NUMERIC else ":---" for c in COLUMNS]
     lines = ["| " + " | ".join(COLUMNS) + " |", "| " + " | ".join(align) + " |"]
