@@ -146,6 +146,35 @@ def _physical_memory() -> int:
 
 
 @cpu_kernel(parallel=True)
+def _triangles_and_bounds(vertices, faces):
+    """Return the ``(F, 3, 3)`` corners and the ``(2, 3)`` bounds of every triangle."""
+    n = faces.shape[0]
+    tri = np.empty((n, 3, 3), dtype=np.float32)
+    n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
+    part = np.empty((n_chunks, 2, 3), dtype=np.float32)
+    for c in prange(n_chunks):
+        for a in range(3):
+            part[c, 0, a] = np.inf
+            part[c, 1, a] = -np.inf
+        for p in range(c * PRIM_CHUNK, min(n, (c + 1) * PRIM_CHUNK)):
+            for k in range(3):
+                v = faces[p, k]
+                for a in range(3):
+                    x = vertices[v, a]
+                    tri[p, k, a] = x
+                    part[c, 0, a] = min(part[c, 0, a], x)
+                    part[c, 1, a] = max(part[c, 1, a], x)
+    bounds = np.empty((2, 3), dtype=np.float32)
+    for a in range(3):
+        bounds[0, a] = np.inf
+        bounds[1, a] = -np.inf
+        for c in range(n_chunks):
+            bounds[0, a] = min(bounds[0, a], part[c, 0, a])
+            bounds[1, a] = max(bounds[1, a], part[c, 1, a])
+    return tri, bounds
+
+
+@cpu_kernel(parallel=True)
 def _prim_boxes(tri, lo, inv, margin, res, first, last):
     """Write each triangle's cell range into ``first``/``last``; return their total cells.
 
@@ -236,11 +265,14 @@ def build_uniform(
     """Build the uniform grid; return it (no skip data) and the triangles ``(F, 3, 3)``."""
     phases: dict[str, float] = {}
     t0 = time.perf_counter()
-    tri = mesh.triangles()
-    n = tri.shape[0]
+    n = mesh.n_triangles
     if n == 0:
         raise InvalidInputError(f"{key}: the mesh has no triangles")
-    lo, hi = grid_box(*mesh.bounds())
+    tri, bounds = _triangles_and_bounds(
+        np.ascontiguousarray(mesh.vertices, dtype=REAL),
+        np.ascontiguousarray(mesh.faces, dtype=INDEX),
+    )
+    lo, hi = grid_box(bounds[0], bounds[1])
     extent = hi.astype(np.float64) - lo
     wanted = options.density * n
     memory_cells = _physical_memory() // (4 * 16)
