@@ -80,6 +80,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.traverse.wide",
     "rayaccel.grid.builders.uniform",
     "rayaccel.grid.builders.skip",
+    "rayaccel.grid.builders.two_level",
     "rayaccel.grid.traverse.dda",
 )
 

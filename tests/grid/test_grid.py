@@ -22,11 +22,30 @@ from rayaccel.grid.layouts.uniform import SKIP_DISTANCE, SKIP_MACRO, UniformGrid
 from rayaccel.rays.batch import RayBatch
 
 #: (builder, traversal): each skipping builder with the traversal that reads its data.
+#: ``grid.two_level+distance`` is ``grid.two_level`` with ``skip="distance"``.
 PAIRS = [
     pytest.param("grid.uniform", "grid.dda", id="uniform-dda"),
     pytest.param("grid.distance", "grid.skip", id="distance-skip"),
     pytest.param("grid.macro_regions", "grid.skip", id="macro-skip"),
+    pytest.param("grid.two_level", "grid.dda", id="two_level-dda"),
+    pytest.param("grid.two_level+distance", "grid.skip", id="two_level_distance-skip"),
 ]
+_ACCELS: dict = {}
+
+
+def _build(mesh, builder):
+    if builder == "grid.two_level+distance":
+        return rayaccel.build(mesh, "grid.two_level", skip="distance")
+    return rayaccel.build(mesh, builder)
+
+
+def _accel(scenes_cache, builder, scene):
+    if builder != "grid.two_level+distance":
+        return scenes_cache.accel(builder, scene)
+    key = (builder, scene)
+    if key not in _ACCELS:
+        _ACCELS[key] = _build(scenes_cache.mesh(scene), builder)
+    return _ACCELS[key]
 
 
 def _check(accel, rays: RayBatch, traversal: str, label: str = "") -> None:
@@ -41,7 +60,7 @@ def _check(accel, rays: RayBatch, traversal: str, label: str = "") -> None:
 def _boundary_rays(accel, n: int, seed: int) -> RayBatch:
     """Rays in cell-boundary planes and grid faces, axis-parallel with ±0.0 components,
     with origins on cell corners, on the grid box and outside it."""
-    grid = accel.structure
+    grid = getattr(accel.structure, "top", accel.structure)
     rng = np.random.default_rng(seed)
     lo = grid.lo.astype(np.float32)
     size = ((grid.hi - grid.lo) / grid.res).astype(np.float32)
@@ -119,7 +138,7 @@ def test_skip_data_matches_definition(seed):
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
 @pytest.mark.parametrize("scene", ["cornell-box", "teapot", "teapot-in-stadium"])
 def test_procedural_scenes(scenes_cache, builder, traversal, scene):
-    accel = scenes_cache.accel(builder, scene)
+    accel = _accel(scenes_cache, builder, scene)
     accel.validate()
     _check(accel, scenes_cache.ray_set(scene), traversal, f"{builder}/{scene}")
     _check(accel, reference.mixed_rays(accel.mesh, 400, seed=3), traversal, "mixed")
@@ -128,7 +147,7 @@ def test_procedural_scenes(scenes_cache, builder, traversal, scene):
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
 @pytest.mark.parametrize("scene", ["cornell-box", "teapot"])
 def test_cell_boundary_rays(scenes_cache, builder, traversal, scene):
-    accel = scenes_cache.accel(builder, scene)
+    accel = _accel(scenes_cache, builder, scene)
     _check(accel, _boundary_rays(accel, 600, seed=7), traversal, "boundary")
 
 
@@ -136,9 +155,10 @@ def test_cell_boundary_rays(scenes_cache, builder, traversal, scene):
 def test_flat_scene(builder, traversal):
     """A single plane (flat along z): grazing, crossing and in-plane rays."""
     mesh = reference.grid_plane(8, z=0.5)
-    accel = rayaccel.build(mesh, builder)
+    accel = _build(mesh, builder)
     accel.validate()
-    assert accel.structure.res[2] == 1
+    grid = getattr(accel.structure, "top", accel.structure)
+    assert grid.res[2] == 1
     lo, hi = mesh.bounds()
     rng = np.random.default_rng(1)
     n = 300
@@ -156,7 +176,7 @@ def test_flat_scene(builder, traversal):
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
 def test_single_triangle(builder, traversal):
     mesh = rayaccel.TriangleMesh([[0, 0, 0], [1, 0, 0], [0, 1, 0.3]], [[0, 1, 2]])
-    accel = rayaccel.build(mesh, builder)
+    accel = _build(mesh, builder)
     accel.validate()
     _check(accel, reference.mixed_rays(mesh, 400, seed=6), traversal, "single")
     _check(accel, _boundary_rays(accel, 200, seed=8), traversal, "boundary")
@@ -174,3 +194,13 @@ def test_copies_of_one_triangle():
     assert info["n_refs"] <= 16 * 100_000
     rays = reference.subsample(reference.mixed_rays(mesh, 120, seed=9), 60)
     _check(accel, rays, "grid.dda", "copies")
+
+
+def test_two_level_leaves_and_cap():
+    mesh = reference.icosphere(3)
+    accel = rayaccel.build(mesh, "grid.two_level")
+    accel.validate()
+    info = accel.info()
+    assert info["n_leaf_cells"] >= info["n_cells"]
+    with pytest.raises(InvalidInputError, match="max_cells"):
+        rayaccel.build(mesh, "grid.two_level", leaf_density=1000.0, max_cells=2000)

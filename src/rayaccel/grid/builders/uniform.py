@@ -247,7 +247,7 @@ def _pairs(tri, lo, size, margin, res, first, last, offsets, keys, values, fill)
 
 
 @cpu_kernel(parallel=True)
-def _cell_ranges(keys, n_cells):
+def cell_ranges(keys, n_cells):
     """Return ``cell_start (n_cells + 1,)`` int32 of keys sorted by cell."""
     n = keys.shape[0]
     start = np.empty(n_cells + 1, dtype=np.int32)
@@ -324,7 +324,7 @@ def build_uniform(
     keys, values = radix_sort(keys, values, max(1, (n_cells - 1).bit_length()))
     phases["sort"] = (time.perf_counter() - t1) * 1e3
     t1 = time.perf_counter()
-    cell_start = _cell_ranges(keys, n_cells)
+    cell_start = cell_ranges(keys, n_cells)
     phases["ranges"] = (time.perf_counter() - t1) * 1e3
     grid = UniformGrid(
         lo=lo,

@@ -311,7 +311,7 @@ def trace_layout(grid: UniformGrid, hit_rows: FloatArray, mailbox: int) -> GridT
     ``hit_rows`` are the mesh's ``(F, 9)`` rows (:meth:`TriangleMesh.hit_rows`);
     ``mailbox`` the per-ray mailbox size (0 disables it).
     """
-    rows = _gather_rows(hit_rows, grid.prim_index)
+    rows = gather_rows(hit_rows, grid.prim_index)
     return with_mailbox(
         GridTrace(
             box=np.array(
@@ -338,7 +338,7 @@ def with_mailbox(layout: GridTrace, mailbox: int) -> GridTrace:
 
 
 @cpu_kernel(parallel=True)
-def _gather_rows(rows, index):
+def gather_rows(rows, index):
     """Return ``rows[index]`` (parallel gather)."""
     out = np.empty((index.shape[0], rows.shape[1]), dtype=rows.dtype)
     for i in prange(index.shape[0]):

@@ -44,6 +44,7 @@ from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
 from rayaccel.counters import Counter
 from rayaccel.errors import InvalidInputError
+from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import (
     SKIP_DISTANCE,
     SKIP_NONE,
@@ -352,7 +353,7 @@ def grid_layout(
 
 
 def _trace(
-    grid: UniformGrid,
+    grid: UniformGrid | TwoLevelGrid,
     mesh: TriangleMesh,
     rays: RayBatch,
     query: str,
@@ -362,6 +363,11 @@ def _trace(
     skip: bool,
 ) -> HitBatch:
     opts = options or DdaOptions()
+    if isinstance(grid, TwoLevelGrid):
+        from rayaccel.grid.traverse import two_level  # (imports this module)
+
+        levels = two_level.two_level_layout(grid, mesh, cache, opts.mailbox)
+        return run_trace(two_level.kernels_for(skip), levels, rays, query, stats)
     layout = grid_layout(grid, mesh, cache, opts.mailbox)
     return run_trace(kernels_for(skip), layout, rays, query, stats)
 
@@ -375,7 +381,7 @@ def _trace(
     reference="Amanatides & Woo 1987, A Fast Voxel Traversal Algorithm for Ray Tracing",
 )
 def trace_grid_dda(
-    grid: UniformGrid,
+    grid: UniformGrid | TwoLevelGrid,
     mesh: TriangleMesh,
     rays: RayBatch,
     *,
@@ -384,7 +390,9 @@ def trace_grid_dda(
     options: DdaOptions | None = None,
     cache: dict[str, Any] | None = None,
 ) -> HitBatch:
-    """Trace rays through a uniform grid, cell by cell (skip data ignored).
+    """Trace rays through a uniform grid cell by cell, or a two-level one DDA in DDA.
+
+    Skip data is ignored.
 
     Parameters
     ----------
@@ -414,7 +422,7 @@ def trace_grid_dda(
     reference="Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure",
 )
 def trace_grid_skip(
-    grid: UniformGrid,
+    grid: UniformGrid | TwoLevelGrid,
     mesh: TriangleMesh,
     rays: RayBatch,
     *,

@@ -1,0 +1,254 @@
+"""Two-level grid construction (Kalojanov, Billeter, Slusallek 2011).
+
+"Two-Level Grids for Ray Tracing on GPUs" (CGF 30(2), Eurographics 2011):
+
+1. The top level is a uniform grid of density λ1 (default 1/16, the value in the
+   authors' released code) built as ``grid.uniform`` does (count, prefix sum, fill
+   with the exact overlap test, sort, cell ranges).
+2. Each top cell gets its own resolution from its reference count ``n_c`` and its box
+   with the leaf density λ2 (default 1.2): Slusallek's formula over the top cell
+   (:func:`~rayaccel.grid.builders.uniform.grid_resolution`); an empty top cell gets
+   one empty leaf. A prefix sum of the sub-grid sizes gives each top cell its first
+   leaf cell.
+3. *One sort for the whole leaf level*: every (top cell, primitive) pair of the top
+   level emits a pair (global leaf cell, primitive) for each leaf cell of that top
+   cell it overlaps (counted, prefix-summed, filled, exact test), and a single radix
+   sort over all of them yields every leaf's range.
+
+``skip="distance"`` adds a chessboard distance field over the *top* cells, the thesis's
+own proposal (empty-space skipping on the two-level grid), read by ``grid.skip``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numba import prange
+
+from rayaccel._jit import cpu_kernel
+from rayaccel._variant import register
+from rayaccel.dtypes import INDEX, REAL
+from rayaccel.errors import InvalidInputError
+from rayaccel.grid.builders.skip import chessboard_distance
+from rayaccel.grid.builders.uniform import (
+    PRIM_CHUNK,
+    UniformGridOptions,
+    build_uniform,
+    cell_ranges,
+)
+from rayaccel.grid.layouts.two_level import TwoLevelGrid
+from rayaccel.grid.layouts.uniform import MAX_RES_AXIS, SKIP_DISTANCE, cell_margin
+from rayaccel.kernels.overlap import triangle_box_overlap
+from rayaccel.kernels.radix_sort import radix_sort
+from rayaccel.scene.mesh import TriangleMesh
+
+
+@dataclass(frozen=True, slots=True)
+class TwoLevelOptions:
+    """Options of :func:`build_two_level_grid`.
+
+    Attributes
+    ----------
+    top_density : float
+        λ1, top cells per primitive (0 < λ1 <= 1024); 1/16 in Kalojanov's code.
+    leaf_density : float
+        λ2, leaf cells per reference of a top cell (0 < λ2 <= 1024); 1.2 in his code.
+    skip : {"none", "distance"}
+        Skip data over empty top cells (``grid.skip`` reads it).
+    max_cells : int
+        Largest number of top cells, and of leaf cells (as ``grid.uniform``).
+    max_refs, max_refs_per_prim
+        The top level's reference budget (as ``grid.uniform``).
+    """
+
+    top_density: float = 1.0 / 16.0
+    leaf_density: float = 1.2
+    skip: str = "none"
+    max_cells: int = 2**26
+    max_refs: int = 2**26
+    max_refs_per_prim: float = 16.0
+
+    def __post_init__(self) -> None:
+        for name in ("top_density", "leaf_density"):
+            value = getattr(self, name)
+            if not (0.0 < value <= 1024.0):
+                raise InvalidInputError(f"{name}: expected 0 < λ <= 1024, got {value}")
+        if self.skip not in ("none", "distance"):
+            raise InvalidInputError(f"skip: expected 'none' or 'distance', got {self.skip!r}")
+        UniformGridOptions(1.0, self.max_cells, self.max_refs, self.max_refs_per_prim)
+
+
+def sub_resolutions(size: np.ndarray, counts: np.ndarray, density: float) -> np.ndarray:
+    """Return ``(n_top, 3)`` int32 leaf resolutions: Slusallek's formula per top cell."""
+    e = np.asarray(size, dtype=np.float64)
+    wanted = np.maximum(density * counts.astype(np.float64), 1.0)
+    free = np.ones((counts.shape[0], 3), dtype=bool)
+    res = np.ones((counts.shape[0], 3), dtype=np.float64)
+    for _ in range(3):
+        k = free.sum(axis=1)
+        volume = np.prod(np.where(free, e, 1.0), axis=1)
+        scale = (wanted / volume) ** (1.0 / np.maximum(k, 1))
+        res = np.where(free, e * scale[:, None], 1.0)
+        small = free & (res < 1.0)
+        if not small.any():
+            break
+        free &= ~small
+    out = np.clip(np.floor(res + 0.5), 1, MAX_RES_AXIS)
+    out[counts == 0] = 1
+    return out.astype(INDEX)
+
+
+@cpu_kernel(parallel=True)
+def _leaf_pairs(
+    tri, top_of_ref, top_prim, lo, size, res, sub_res, leaf_first, leaf_size, margin,
+    offsets, keys, values, fill,
+):  # fmt: skip
+    """Count (``fill`` False) or write the leaf cells each top reference overlaps."""
+    n = top_prim.shape[0]
+    n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
+    rx = res[0]
+    ry = res[1]
+    for ch in prange(n_chunks):
+        b_lo = np.empty(3, dtype=np.float32)
+        b_hi = np.empty(3, dtype=np.float32)
+        first = np.empty(3, dtype=np.int64)
+        last = np.empty(3, dtype=np.int64)
+        top_lo = np.empty(3, dtype=np.float32)
+        for i in range(ch * PRIM_CHUNK, min(n, (ch + 1) * PRIM_CHUNK)):
+            c = top_of_ref[i]
+            p = top_prim[i]
+            cx = c % rx
+            cy = (c // rx) % ry
+            cz = c // (rx * ry)
+            top_lo[0] = lo[0] + np.float32(cx) * size[0]
+            top_lo[1] = lo[1] + np.float32(cy) * size[1]
+            top_lo[2] = lo[2] + np.float32(cz) * size[2]
+            single = True
+            for a in range(3):
+                t_lo = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+                t_hi = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+                inv = 1.0 / np.float64(leaf_size[c, a])
+                m2 = 2.0 * np.float64(margin[c, a])
+                j0 = np.int64(np.floor((np.float64(t_lo) - m2 - top_lo[a]) * inv))
+                j1 = np.int64(np.floor((np.float64(t_hi) + m2 - top_lo[a]) * inv))
+                r = np.int64(sub_res[c, a])
+                first[a] = min(max(j0, 0), r - 1)
+                last[a] = min(max(j1, 0), r - 1)
+                if first[a] != last[a] or j0 < 0 or j1 >= r:
+                    single = False
+            lrx = np.int64(sub_res[c, 0])
+            lry = np.int64(sub_res[c, 1])
+            slot = offsets[i] if fill else 0
+            if single:
+                if fill:
+                    keys[slot] = leaf_first[c] + first[0] + lrx * (first[1] + lry * first[2])
+                    values[slot] = p
+                else:
+                    offsets[i] = 1
+                continue
+            for z in range(first[2], last[2] + 1):
+                b_lo[2] = top_lo[2] + np.float32(z) * leaf_size[c, 2] - margin[c, 2]
+                b_hi[2] = top_lo[2] + np.float32(z + 1) * leaf_size[c, 2] + margin[c, 2]
+                for y in range(first[1], last[1] + 1):
+                    b_lo[1] = top_lo[1] + np.float32(y) * leaf_size[c, 1] - margin[c, 1]
+                    b_hi[1] = top_lo[1] + np.float32(y + 1) * leaf_size[c, 1] + margin[c, 1]
+                    for x in range(first[0], last[0] + 1):
+                        b_lo[0] = top_lo[0] + np.float32(x) * leaf_size[c, 0] - margin[c, 0]
+                        b_hi[0] = top_lo[0] + np.float32(x + 1) * leaf_size[c, 0] + margin[c, 0]
+                        if triangle_box_overlap(tri, p, b_lo, b_hi):
+                            if fill:
+                                keys[slot] = leaf_first[c] + x + lrx * (y + lry * z)
+                                values[slot] = p
+                            slot += 1
+            if not fill:
+                offsets[i] = slot
+
+
+@register(
+    "builder",
+    "grid.two_level",
+    options=TwoLevelOptions,
+    summary="two-level grid: λ1 top grid, per-cell λ2 sub-grids, one sort for all leaves",
+    reference="Kalojanov, Billeter, Slusallek 2011, Two-Level Grids for Ray Tracing on GPUs",
+)
+def build_two_level_grid(
+    mesh: TriangleMesh, options: TwoLevelOptions | None = None
+) -> TwoLevelGrid:
+    """Build a two-level grid over ``mesh``'s triangles (see the module docstring).
+
+    Raises
+    ------
+    InvalidInputError
+        A density asks for more cells than ``max_cells`` or memory allows.
+    """
+    opts = options or TwoLevelOptions()
+    top_opts = UniformGridOptions(
+        opts.top_density, opts.max_cells, opts.max_refs, opts.max_refs_per_prim
+    )
+    top, tri = build_uniform(mesh, top_opts, "grid.two_level")
+    phases = {f"top_{k}": v for k, v in top.phase_ms.items()}
+    t0 = time.perf_counter()
+    n_top = top.n_cells
+    counts = np.diff(top.cell_start)
+    size = ((top.hi - top.lo) / top.res).astype(REAL)
+    sub_res = sub_resolutions(size, counts, opts.leaf_density)
+    n_sub = np.prod(sub_res.astype(np.int64), axis=1)
+    leaf_first64 = np.concatenate([[0], np.cumsum(n_sub)])
+    n_leaves = int(leaf_first64[-1])
+    if n_leaves > opts.max_cells:
+        raise InvalidInputError(
+            f"grid.two_level: leaf density λ2={opts.leaf_density} asks for {n_leaves} leaf "
+            f"cells, more than max_cells={opts.max_cells}; lower it or raise max_cells"
+        )
+    leaf_first = leaf_first64.astype(INDEX)
+    leaf_size = (size[None, :] / sub_res).astype(REAL)
+    coords = (np.abs(top.lo.astype(np.float64)) + np.abs(top.hi)) * 2.0**-21
+    margin = np.minimum(
+        (leaf_size * (2.0**-10) + coords).astype(REAL), cell_margin(top.lo, top.hi, top.res)
+    )
+    top_of_ref = np.repeat(np.arange(n_top, dtype=np.int64), counts)
+    phases["sub_res"] = (time.perf_counter() - t0) * 1e3
+    t1 = time.perf_counter()
+    n_ref = top.n_refs
+    offsets = np.empty(n_ref, dtype=np.int64)
+    args = (tri, top_of_ref, top.prim_index, top.lo, size, top.res, sub_res, leaf_first,
+            leaf_size, margin)  # fmt: skip
+    _leaf_pairs(*args, offsets, np.empty(0, np.int64), np.empty(0, np.int32), False)
+    total = np.cumsum(offsets)
+    n_pairs = int(total[-1]) if n_ref else 0
+    if n_pairs > 2**31 - 1:
+        raise InvalidInputError(f"grid.two_level: {n_pairs} leaf references exceed int32")
+    starts = np.empty(n_ref, dtype=np.int64)
+    if n_ref:
+        starts[0] = 0
+        starts[1:] = total[:-1]
+    keys = np.empty(n_pairs, dtype=np.int64)
+    values = np.empty(n_pairs, dtype=np.int32)
+    _leaf_pairs(*args, starts, keys, values, True)
+    phases["leaf_pairs"] = (time.perf_counter() - t1) * 1e3
+    t1 = time.perf_counter()
+    keys, values = radix_sort(keys, values, max(1, (n_leaves - 1).bit_length()))
+    phases["leaf_sort"] = (time.perf_counter() - t1) * 1e3
+    t1 = time.perf_counter()
+    leaf_start = cell_ranges(keys, n_leaves)
+    phases["leaf_ranges"] = (time.perf_counter() - t1) * 1e3
+    if opts.skip == "distance":
+        t1 = time.perf_counter()
+        rx, ry, rz = (int(r) for r in top.res)
+        skip = chessboard_distance(top.cell_start, rx, ry, rz)
+        top = dataclasses.replace(top, skip_kind=SKIP_DISTANCE, skip=skip)
+        phases["skip"] = (time.perf_counter() - t1) * 1e3
+    return TwoLevelGrid(
+        top=top,
+        sub_res=sub_res,
+        leaf_first=leaf_first,
+        leaf_size=leaf_size,
+        leaf_start=leaf_start,
+        prim_index=np.ascontiguousarray(values, dtype=INDEX),
+        n_prims=top.n_prims,
+        leaf_density=float(opts.leaf_density),
+        phase_ms=phases,
+    )
