@@ -287,10 +287,11 @@ def _box_sum(table: np.ndarray, box: np.ndarray) -> np.ndarray:
     """Return the occupied cells in each inclusive box ``(x0, y0, z0, x1, y1, z1)``."""
     x0, y0, z0 = box[:, 0], box[:, 1], box[:, 2]
     x1, y1, z1 = box[:, 3] + 1, box[:, 4] + 1, box[:, 5] + 1
-    return (
+    sums: np.ndarray = (
         table[z1, y1, x1] - table[z0, y1, x1] - table[z1, y0, x1] - table[z1, y1, x0]
         + table[z0, y0, x1] + table[z0, y1, x0] + table[z1, y0, x0] - table[z0, y0, x0]
     )  # fmt: skip
+    return sums
 
 
 def _check_distance_brute(occupied: np.ndarray, dist: np.ndarray) -> None:
