@@ -1,0 +1,69 @@
+"""``kdtree.median``: the spatial-median kd-tree, the baseline of the SAH build.
+
+Each node with more than ``max_leaf_size`` triangles is cut in the middle of the
+longest axis of its cell (Kaplan 1985's BSP of space, as in the early kd-tree ray
+tracers), until the depth cap ``8 + 1.3·log2 N``. Triangles are classified and
+clipped exactly as in ``kdtree.sah`` (:mod:`rayaccel.kdtree.builders.sweep`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rayaccel._variant import register
+from rayaccel.errors import InvalidInputError
+from rayaccel.kdtree.builders.sweep import MODE_MEDIAN, SweepParams, build_sweep
+from rayaccel.kdtree.layouts.kdtree import MAX_DEPTH, KdTree
+from rayaccel.scene.mesh import TriangleMesh
+
+
+@dataclass(frozen=True, slots=True)
+class KdMedianOptions:
+    """Options of :func:`build_kdtree_median`.
+
+    Attributes
+    ----------
+    max_leaf_size : int
+        Nodes with more triangles are split (>= 1).
+    max_depth : int
+        Upper bound on the depth (1..MAX_DEPTH); also capped at ``8 + 1.3·log2 N``.
+    perfect_splits : bool
+        Clip straddling triangles to each child cell (True) or cut their boxes.
+    """
+
+    max_leaf_size: int = 4
+    max_depth: int = MAX_DEPTH
+    perfect_splits: bool = True
+
+    def __post_init__(self) -> None:
+        if self.max_leaf_size < 1:
+            raise InvalidInputError(f"max_leaf_size must be >= 1, got {self.max_leaf_size}")
+        if not 1 <= self.max_depth <= MAX_DEPTH:
+            raise InvalidInputError(f"max_depth must be in 1..{MAX_DEPTH}, got {self.max_depth}")
+
+
+@register(
+    "builder",
+    "kdtree.median",
+    options=KdMedianOptions,
+    summary="spatial-median kd-tree (the longest axis of the cell cut in half)",
+    reference="Kaplan 1985, Space-tracing: a constant time ray-tracer",
+)
+def build_kdtree_median(mesh: TriangleMesh, options: KdMedianOptions | None = None) -> KdTree:
+    """Build a kd-tree by spatial median splits.
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+    options : KdMedianOptions, optional
+
+    Returns
+    -------
+    KdTree
+    """
+    opt = options or KdMedianOptions()
+    params = SweepParams(
+        MODE_MEDIAN, 1.0, 1.0, 1.0, int(opt.max_depth), int(opt.max_leaf_size),
+        bool(opt.perfect_splits),
+    )  # fmt: skip
+    return build_sweep(mesh, params)

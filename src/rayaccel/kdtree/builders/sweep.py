@@ -1,0 +1,558 @@
+"""The top-down kd-tree build by sorted events (Wald & Havran 2006), shared by both builders.
+
+Wald & Havran 2006, "On building fast kd-Trees for Ray Tracing, and on doing that
+in O(N log N)" (IEEE Symposium on Interactive Ray Tracing).
+
+Events. Each triangle contributes, per axis, the extent of its bounds in the node's
+cell: a *start* event at the low end and an *end* event at the high end, or one
+*planar* event when the two coincide. A node's events are kept sorted by
+``(axis, position, type)`` with ``end < planar < start``. They are sorted **once**,
+at the root (numpy's stable lexsort); below, each child's list is spliced from its
+parent's.
+
+Sweep (``kdtree.sah``). Per axis, walking the distinct positions ``p`` in order
+with ``N_L = 0, N_R = N``: count the ends ``p−``, planars ``p|`` and starts ``p+`` at
+``p``; ``N_R -= p| + p−``; evaluate the split at ``p`` with the planar triangles put
+left and put right (keeping the cheaper); ``N_L += p+ + p|``. The cost of a split is
+``λ·(K_T + K_I·(P_L·N_L + P_R·N_R))`` with ``P = SA(child)/SA(cell)`` and ``λ`` the
+empty-space bonus when one side is empty (§4.1), against ``K_I·N`` for a leaf. Only
+planes strictly inside the cell are candidates (pbrt), so no child equals its
+parent and the build terminates; the depth cap ``8 + 1.3·log2 N`` (pbrt) is a
+safety net that also bounds every traversal stack.
+
+Classification and splicing (§4.3). Walking the chosen axis's events: a triangle
+whose end is ``<= p`` (or planar below ``p``) is left-only; whose start is ``>= p``
+(or planar above) is right-only; planar *at* ``p`` goes to the side the sweep chose;
+every other triangle straddles the plane and goes to both. Left- and right-only
+triangles keep their events, already in order. Each straddling triangle is clipped
+to each child cell (Sutherland–Hodgman, :func:`rayaccel.kernels.clip.clip_triangle_box`,
+bounds rounded outward): these *perfect splits* (Havran 2000) bound the part of the
+triangle in the child, not its whole box. Their new events (few: O(√N) straddle a
+plane in a typical scene) are sorted and merged with the kept ones, so each node
+costs time linear in its events and the whole build O(N log N). Without perfect
+splits (``perfect_splits=False``, the thesis's KD_no_ps) the new bounds are the
+triangle's box cut by the child cell.
+
+A triangle touching a plane only from one side, or lying in it, is therefore listed on
+one side only; the traversals visit closed cells so a ray meeting it on the plane
+still finds it (:mod:`rayaccel.kdtree.traverse`).
+
+Memory. Event lists live in one buffer used as a stack: a split writes the right
+child's list, then the left child's, after its own; the left child (popped first)
+writes its children after that, and the space is reused when a subtree is done.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from rayaccel._jit import cpu_kernel
+from rayaccel.dtypes import INDEX, REAL
+from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, KdTree, max_depth_for
+from rayaccel.kernels.clip import clip_triangle_box, polygon_bounds
+from rayaccel.scene.mesh import TriangleMesh
+
+#: Event types, in sort order at one position.
+END = 0
+PLANAR = 1
+START = 2
+
+#: Plane choice: the surface area heuristic over all events, or the cell's spatial median.
+MODE_SAH = 0
+MODE_MEDIAN = 1
+
+_LEFT = 1
+_RIGHT = 2
+_BOTH = 3
+
+
+class SweepParams(NamedTuple):
+    """Build parameters as one kernel argument."""
+
+    mode: int
+    traversal_cost: float
+    intersection_cost: float
+    empty_bonus: float
+    max_depth: int
+    max_leaf_size: int
+    perfect_splits: bool
+
+
+def initial_events(tri: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Return the root's events ``(pos, type, axis, prim)``, sorted by (axis, pos, type)."""
+    n = tri.shape[0]
+    lo = tri.min(axis=1) + np.float32(0.0)  # + 0.0 turns -0.0 into +0.0
+    hi = tri.max(axis=1) + np.float32(0.0)
+    planar = lo == hi
+    pos_parts = []
+    type_parts = []
+    axis_parts = []
+    prim_parts = []
+    prims = np.arange(n, dtype=INDEX)
+    for a in range(3):
+        p = planar[:, a]
+        q = ~p
+        pos_parts += [lo[p, a], lo[q, a], hi[q, a]]
+        type_parts += [
+            np.full(int(p.sum()), PLANAR, np.int8),
+            np.full(int(q.sum()), START, np.int8),
+            np.full(int(q.sum()), END, np.int8),
+        ]
+        axis_parts += [np.full(int(p.sum()) + 2 * int(q.sum()), a, np.int8)]
+        prim_parts += [prims[p], prims[q], prims[q]]
+    pos = np.concatenate(pos_parts).astype(REAL)
+    typ = np.concatenate(type_parts)
+    axis = np.concatenate(axis_parts)
+    prim = np.concatenate(prim_parts).astype(INDEX)
+    order = np.lexsort((typ, pos, axis))
+    return (
+        np.ascontiguousarray(pos[order]),
+        np.ascontiguousarray(typ[order]),
+        np.ascontiguousarray(axis[order]),
+        np.ascontiguousarray(prim[order]),
+    )
+
+
+def build_sweep(mesh: TriangleMesh, params: SweepParams) -> KdTree:
+    """Build a kd-tree over ``mesh`` with the event sweep (see the module docstring)."""
+    tri = np.ascontiguousarray(mesh.triangles(), dtype=REAL)
+    lo, hi = mesh.bounds()
+    lo = np.ascontiguousarray(lo, dtype=REAL)
+    hi = np.ascontiguousarray(hi, dtype=REAL)
+    pos, typ, axis, prim = initial_events(tri)
+    max_depth = min(int(params.max_depth), max_depth_for(tri.shape[0]))
+    params = params._replace(max_depth=max_depth)
+    split, bits, leaf_first, leaf_count, prim_index = _build_kernel(
+        tri, lo, hi, pos, typ, axis, prim, params
+    )
+    nodes = np.empty((split.shape[0], 2), dtype=REAL)
+    nodes[:, 0] = split
+    nodes.view(np.int32)[:, 1] = bits
+    return KdTree(
+        nodes=nodes,
+        leaf_first=leaf_first,
+        leaf_count=leaf_count,
+        prim_index=prim_index,
+        lo=lo,
+        hi=hi,
+        n_prims=int(tri.shape[0]),
+        perfect_splits=bool(params.perfect_splits),
+    )
+
+
+@cpu_kernel()
+def _grow_f(a, need):
+    """Return ``a`` or a copy at least ``need`` long (doubling)."""
+    if need <= a.shape[0]:
+        return a
+    b = np.empty(max(need, 2 * a.shape[0]), dtype=a.dtype)
+    b[: a.shape[0]] = a
+    return b
+
+
+@cpu_kernel()
+def _half_area(lo0, lo1, lo2, hi0, hi1, hi2):
+    ex = np.float64(hi0) - lo0
+    ey = np.float64(hi1) - lo1
+    ez = np.float64(hi2) - lo2
+    return ex * ey + ey * ez + ez * ex
+
+
+@cpu_kernel()
+def _less(a0, p0, t0, a1, p1, t1):
+    """Event order: axis, then position, then type."""
+    if a0 != a1:
+        return a0 < a1
+    if p0 != p1:
+        return p0 < p1
+    return t0 < t1
+
+
+@cpu_kernel()
+def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
+    n_prims = tri.shape[0]
+    k_t = params.traversal_cost
+    k_i = params.intersection_cost
+    bonus = params.empty_bonus
+    max_depth = params.max_depth
+    # Event buffer used as a stack (see the module docstring).
+    cap = max(3 * pos0.shape[0], 16)
+    e_pos = np.empty(cap, dtype=np.float32)
+    e_typ = np.empty(cap, dtype=np.int8)
+    e_axis = np.empty(cap, dtype=np.int8)
+    e_prim = np.empty(cap, dtype=np.int32)
+    m0 = pos0.shape[0]
+    e_pos[:m0] = pos0
+    e_typ[:m0] = typ0
+    e_axis[:m0] = axis0
+    e_prim[:m0] = prim0
+    # Per-node scratch: kept and new events of one child, sides, clipping buffers.
+    tmp_cap = max(m0, 16)
+    k_pos = np.empty(tmp_cap, dtype=np.float32)
+    k_typ = np.empty(tmp_cap, dtype=np.int8)
+    k_axis = np.empty(tmp_cap, dtype=np.int8)
+    k_prim = np.empty(tmp_cap, dtype=np.int32)
+    n_pos = np.empty(tmp_cap, dtype=np.float32)
+    n_typ = np.empty(tmp_cap, dtype=np.int8)
+    n_axis = np.empty(tmp_cap, dtype=np.int8)
+    n_prim = np.empty(tmp_cap, dtype=np.int32)
+    side = np.zeros(n_prims, dtype=np.int8)
+    poly = np.empty((16, 3), dtype=np.float64)
+    poly_tmp = np.empty((16, 3), dtype=np.float64)
+    c_lo = np.empty(3, dtype=np.float32)
+    c_hi = np.empty(3, dtype=np.float32)
+    bounds = np.empty(6, dtype=np.float32)
+    box_lo = np.empty(3, dtype=np.float32)
+    box_hi = np.empty(3, dtype=np.float32)
+    both_bounds = np.empty((tmp_cap // 2 + 1, 6), dtype=np.float32)
+    # Output, grown as needed.
+    out_split = np.empty(1024, dtype=np.float32)
+    out_bits = np.empty(1024, dtype=np.int32)
+    out_first = np.empty(512, dtype=np.int32)
+    out_count = np.empty(512, dtype=np.int32)
+    out_prims = np.empty(max(n_prims, 16), dtype=np.int32)
+    n_nodes = 1
+    n_leaves = 0
+    n_refs = 0
+    # Work stack: node, event range, prim count, depth, cell.
+    stack_cap = max_depth + 4
+    s_node = np.empty(stack_cap, dtype=np.int32)
+    s_begin = np.empty(stack_cap, dtype=np.int64)
+    s_end = np.empty(stack_cap, dtype=np.int64)
+    s_n = np.empty(stack_cap, dtype=np.int32)
+    s_depth = np.empty(stack_cap, dtype=np.int32)
+    s_lo = np.empty((stack_cap, 3), dtype=np.float32)
+    s_hi = np.empty((stack_cap, 3), dtype=np.float32)
+    s_node[0] = 0
+    s_begin[0] = 0
+    s_end[0] = m0
+    s_n[0] = n_prims
+    s_depth[0] = 0
+    for a in range(3):
+        s_lo[0, a] = scene_lo[a]
+        s_hi[0, a] = scene_hi[a]
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = s_node[sp]
+        begin = s_begin[sp]
+        end = s_end[sp]
+        n = s_n[sp]
+        depth = s_depth[sp]
+        for a in range(3):
+            c_lo[a] = s_lo[sp, a]
+            c_hi[a] = s_hi[sp, a]
+        # ---- choose a plane
+        best_axis = -1
+        best_pos = np.float32(0.0)
+        best_side = _LEFT
+        area = _half_area(c_lo[0], c_lo[1], c_lo[2], c_hi[0], c_hi[1], c_hi[2])
+        can_split = n > 0 and depth < max_depth
+        if can_split and params.mode == MODE_SAH and area > 0:
+            best_cost = np.inf
+            inv_area = 1.0 / area
+            i = begin
+            while i < end:
+                k = e_axis[i]
+                # One axis: its events are contiguous.
+                n_l = 0
+                n_r = n
+                while i < end and e_axis[i] == k:
+                    p = e_pos[i]
+                    p_end = 0
+                    p_planar = 0
+                    p_start = 0
+                    while i < end and e_axis[i] == k and e_pos[i] == p and e_typ[i] == END:
+                        p_end += 1
+                        i += 1
+                    while i < end and e_axis[i] == k and e_pos[i] == p and e_typ[i] == PLANAR:
+                        p_planar += 1
+                        i += 1
+                    while i < end and e_axis[i] == k and e_pos[i] == p and e_typ[i] == START:
+                        p_start += 1
+                        i += 1
+                    n_r -= p_planar + p_end
+                    if c_lo[k] < p < c_hi[k]:
+                        l_hi0, l_hi1, l_hi2 = c_hi[0], c_hi[1], c_hi[2]
+                        r_lo0, r_lo1, r_lo2 = c_lo[0], c_lo[1], c_lo[2]
+                        if k == 0:
+                            l_hi0 = p
+                            r_lo0 = p
+                        elif k == 1:
+                            l_hi1 = p
+                            r_lo1 = p
+                        else:
+                            l_hi2 = p
+                            r_lo2 = p
+                        p_l = _half_area(c_lo[0], c_lo[1], c_lo[2], l_hi0, l_hi1, l_hi2) * inv_area
+                        p_r = _half_area(r_lo0, r_lo1, r_lo2, c_hi[0], c_hi[1], c_hi[2]) * inv_area
+                        # Planar triangles left ...
+                        nl = n_l + p_planar
+                        nr = n_r
+                        cost = k_t + k_i * (p_l * nl + p_r * nr)
+                        if nl == 0 or nr == 0:
+                            cost *= bonus
+                        if cost < best_cost:
+                            best_cost = cost
+                            best_axis = k
+                            best_pos = p
+                            best_side = _LEFT
+                        # ... or right.
+                        nl = n_l
+                        nr = n_r + p_planar
+                        cost = k_t + k_i * (p_l * nl + p_r * nr)
+                        if nl == 0 or nr == 0:
+                            cost *= bonus
+                        if cost < best_cost:
+                            best_cost = cost
+                            best_axis = k
+                            best_pos = p
+                            best_side = _RIGHT
+                    n_l += p_start + p_planar
+            if best_axis >= 0 and best_cost >= k_i * n and n <= params.max_leaf_size:
+                best_axis = -1
+        elif can_split and params.mode == MODE_MEDIAN and n > params.max_leaf_size:
+            k = 0
+            for a in range(1, 3):
+                if c_hi[a] - c_lo[a] > c_hi[k] - c_lo[k]:
+                    k = a
+            p = np.float32(0.5) * (c_lo[k] + c_hi[k])
+            if c_lo[k] < p < c_hi[k]:
+                best_axis = k
+                best_pos = p
+                best_side = _LEFT
+        # ---- classify against the plane
+        n_left = 0
+        n_right = 0
+        n_both = 0
+        if best_axis >= 0:
+            k = best_axis
+            p = best_pos
+            for i in range(begin, end):
+                if e_axis[i] == k:
+                    side[e_prim[i]] = _BOTH
+            for i in range(begin, end):
+                if e_axis[i] != k:
+                    continue
+                t = e_typ[i]
+                q = e_pos[i]
+                if t == END and q <= p:
+                    side[e_prim[i]] = _LEFT
+                elif t == START and q >= p:
+                    side[e_prim[i]] = _RIGHT
+                elif t == PLANAR:
+                    if q < p:
+                        side[e_prim[i]] = _LEFT
+                    elif q > p:
+                        side[e_prim[i]] = _RIGHT
+                    else:
+                        side[e_prim[i]] = best_side
+            for i in range(begin, end):
+                if e_axis[i] == k and e_typ[i] != END:
+                    s = side[e_prim[i]]
+                    if s == _LEFT:
+                        n_left += 1
+                    elif s == _RIGHT:
+                        n_right += 1
+                    else:
+                        n_both += 1
+            # A split that separates nothing (every triangle on both sides, as for many
+            # copies of one triangle under the median) would only repeat the node.
+            if n_left == 0 and n_right == 0 and params.mode == MODE_MEDIAN:
+                best_axis = -1
+        if best_axis < 0:
+            # ---- leaf: the prims of this node (one non-end event each on axis 0)
+            if n_leaves == out_first.shape[0]:
+                out_first = _grow_f(out_first, n_leaves + 1)
+                out_count = _grow_f(out_count, n_leaves + 1)
+            out_prims = _grow_f(out_prims, n_refs + n)
+            first = n_refs
+            for i in range(begin, end):
+                if e_axis[i] == e_axis[begin] and e_typ[i] != END:
+                    out_prims[n_refs] = e_prim[i]
+                    n_refs += 1
+            out_first[n_leaves] = first
+            out_count[n_leaves] = n_refs - first
+            out_split[node] = np.float32(0.0)
+            out_bits[node] = (n_leaves << 2) | LEAF_AXIS
+            n_leaves += 1
+            continue
+        # ---- inner node: two adjacent children
+        k = best_axis
+        p = best_pos
+        child = n_nodes
+        n_nodes += 2
+        if n_nodes > out_split.shape[0]:
+            out_split = _grow_f(out_split, n_nodes)
+            out_bits = _grow_f(out_bits, n_nodes)
+        out_split[node] = p
+        out_bits[node] = (child << 2) | k
+        # Clip every straddling triangle to both children (perfect splits).
+        # both_bounds[j] holds the left then the right part's bounds, in two passes.
+        n_new_max = 6 * n_both
+        child_begin = end
+        # Children event ranges: right first, then left (popped first).
+        right_cap = (end - begin) + n_new_max
+        left_cap = right_cap
+        need = child_begin + right_cap + left_cap
+        if need > e_pos.shape[0]:
+            e_pos = _grow_f(e_pos, need)
+            e_typ = _grow_f(e_typ, need)
+            e_axis = _grow_f(e_axis, need)
+            e_prim = _grow_f(e_prim, need)
+        if n_new_max > n_pos.shape[0]:
+            n_pos = _grow_f(n_pos, n_new_max)
+            n_typ = _grow_f(n_typ, n_new_max)
+            n_axis = _grow_f(n_axis, n_new_max)
+            n_prim = _grow_f(n_prim, n_new_max)
+        if n_both > both_bounds.shape[0]:
+            both_bounds = np.empty((2 * n_both, 6), dtype=np.float32)
+        write = child_begin
+        for half in range(2):
+            # half 0: the right child (written first); half 1: the left child.
+            this_side = _RIGHT if half == 0 else _LEFT
+            h_lo0, h_lo1, h_lo2 = c_lo[0], c_lo[1], c_lo[2]
+            h_hi0, h_hi1, h_hi2 = c_hi[0], c_hi[1], c_hi[2]
+            if half == 0:
+                if k == 0:
+                    h_lo0 = p
+                elif k == 1:
+                    h_lo1 = p
+                else:
+                    h_lo2 = p
+            else:
+                if k == 0:
+                    h_hi0 = p
+                elif k == 1:
+                    h_hi1 = p
+                else:
+                    h_hi2 = p
+            # Kept events (already sorted).
+            n_kept = 0
+            for i in range(begin, end):
+                if side[e_prim[i]] == this_side:
+                    k_pos[n_kept] = e_pos[i]
+                    k_typ[n_kept] = e_typ[i]
+                    k_axis[n_kept] = e_axis[i]
+                    k_prim[n_kept] = e_prim[i]
+                    n_kept += 1
+            # New events of the straddling triangles, axis by axis.
+            j = 0
+            for i in range(begin, end):
+                if e_axis[i] == k and e_typ[i] == START and side[e_prim[i]] == _BOTH:
+                    pr = e_prim[i]
+                    box_lo[0] = h_lo0
+                    box_lo[1] = h_lo1
+                    box_lo[2] = h_lo2
+                    box_hi[0] = h_hi0
+                    box_hi[1] = h_hi1
+                    box_hi[2] = h_hi2
+                    m = 0
+                    if params.perfect_splits:
+                        m = clip_triangle_box(tri, pr, box_lo, box_hi, poly, poly_tmp, 1)
+                    if m >= 1:
+                        polygon_bounds(poly, m, box_lo, box_hi, bounds)
+                    else:
+                        # The triangle's box cut by the cell (also the fallback when
+                        # rounding clips a touching triangle away).
+                        for a in range(3):
+                            lo_a = min(tri[pr, 0, a], tri[pr, 1, a], tri[pr, 2, a])
+                            hi_a = max(tri[pr, 0, a], tri[pr, 1, a], tri[pr, 2, a])
+                            bounds[a] = max(lo_a, box_lo[a])
+                            bounds[3 + a] = min(hi_a, box_hi[a])
+                    for a in range(3):
+                        if bounds[a] > bounds[3 + a]:
+                            bounds[3 + a] = bounds[a]
+                        both_bounds[j, a] = bounds[a]
+                        both_bounds[j, 3 + a] = bounds[3 + a]
+                    j += 1
+            n_new = 0
+            for a in range(3):
+                seg = n_new
+                j = 0
+                for i in range(begin, end):
+                    if e_axis[i] == k and e_typ[i] == START and side[e_prim[i]] == _BOTH:
+                        pr = e_prim[i]
+                        blo = both_bounds[j, a]
+                        bhi = both_bounds[j, 3 + a]
+                        if blo == 0:
+                            blo = np.float32(0.0)
+                        if bhi == 0:
+                            bhi = np.float32(0.0)
+                        if blo == bhi:
+                            n_pos[n_new] = blo
+                            n_typ[n_new] = PLANAR
+                            n_axis[n_new] = a
+                            n_prim[n_new] = pr
+                            n_new += 1
+                        else:
+                            n_pos[n_new] = blo
+                            n_typ[n_new] = START
+                            n_axis[n_new] = a
+                            n_prim[n_new] = pr
+                            n_new += 1
+                            n_pos[n_new] = bhi
+                            n_typ[n_new] = END
+                            n_axis[n_new] = a
+                            n_prim[n_new] = pr
+                            n_new += 1
+                        j += 1
+                # Sort this axis's few new events by (position, type): stable sorts.
+                cnt = n_new - seg
+                if cnt > 1:
+                    o1 = np.argsort(n_typ[seg:n_new], kind="mergesort")
+                    tp = n_pos[seg:n_new][o1]
+                    o2 = np.argsort(tp, kind="mergesort")
+                    order = o1[o2]
+                    sp_pos = n_pos[seg:n_new][order]
+                    sp_typ = n_typ[seg:n_new][order]
+                    sp_prim = n_prim[seg:n_new][order]
+                    n_pos[seg:n_new] = sp_pos
+                    n_typ[seg:n_new] = sp_typ
+                    n_prim[seg:n_new] = sp_prim
+            # Merge kept and new events into the child's range.
+            start_w = write
+            ia = 0
+            ib = 0
+            while ia < n_kept or ib < n_new:
+                take_a = ib >= n_new or (
+                    ia < n_kept
+                    and not _less(
+                        n_axis[ib], n_pos[ib], n_typ[ib], k_axis[ia], k_pos[ia], k_typ[ia]
+                    )
+                )
+                if take_a:
+                    e_pos[write] = k_pos[ia]
+                    e_typ[write] = k_typ[ia]
+                    e_axis[write] = k_axis[ia]
+                    e_prim[write] = k_prim[ia]
+                    ia += 1
+                else:
+                    e_pos[write] = n_pos[ib]
+                    e_typ[write] = n_typ[ib]
+                    e_axis[write] = n_axis[ib]
+                    e_prim[write] = n_prim[ib]
+                    ib += 1
+                write += 1
+            # Push the child: right first (popped last).
+            s_node[sp] = child + 1 if half == 0 else child
+            s_begin[sp] = start_w
+            s_end[sp] = write
+            s_n[sp] = (n_right if half == 0 else n_left) + n_both
+            s_depth[sp] = depth + 1
+            s_lo[sp, 0] = h_lo0
+            s_lo[sp, 1] = h_lo1
+            s_lo[sp, 2] = h_lo2
+            s_hi[sp, 0] = h_hi0
+            s_hi[sp, 1] = h_hi1
+            s_hi[sp, 2] = h_hi2
+            sp += 1
+    return (
+        out_split[:n_nodes].copy(),
+        out_bits[:n_nodes].copy(),
+        out_first[:n_leaves].copy(),
+        out_count[:n_leaves].copy(),
+        out_prims[:n_refs].copy(),
+    )

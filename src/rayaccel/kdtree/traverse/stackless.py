@@ -1,0 +1,460 @@
+"""The stackless kd traversals' shared per-ray body (restart, backtrack, short stack, ropes).
+
+kd-restart, kd-backtrack and the short stack visit the leaves in exactly the order
+of ``kdtree.stack`` (the same padded segments, the near child first, a ray in a
+split plane into both children) without keeping the far children. Where the stack
+would pop, they find the next subtree again:
+
+``METHOD_RESTART`` (Foley & Sugerman 2005, kd-restart)
+    descend again from the root.
+``METHOD_BACKTRACK`` (Foley & Sugerman 2005, kd-backtrack)
+    walk up the parent links to the pending node and recompute its segment from its
+    box (node boxes: 24 bytes per node; ``backtracks`` counts the links followed).
+``METHOD_SHORT_STACK`` (Horn et al. 2007)
+    pop a ring of the ``size`` most recent far children (a push onto a full ring
+    drops the oldest); when it is empty, descend again from the push-down root, the
+    first node on the path with two children to visit (all above it have one).
+
+Which subtree is pending is not kept as a ``t`` to restart from, as Foley &
+Sugerman do, but as one bit per level (the restart trail of Laine 2010): bit
+``k`` set means "the near child at depth ``k`` is done". A ``t``-based restart
+skips cells the ray crosses within rounding (the leaf's exit equals the split
+distance of the next cell): the thesis's KD_restart did not finish on two scenes,
+and a first version of ours missed hits at grid vertices. With the trail, a descent
+goes near at a depth whose bit is clear and far where it is set, and after each
+leaf the deepest clear bit of a two-child node is set and the bits below it
+cleared; the trail grows in the path order, so every ray ends after at most one
+descent per leaf (tested), and the hits are ``kdtree.stack``'s bit for bit.
+Subtrees whose segment begins beyond the closest hit (plus the culling pad) are
+skipped, as the stack skips such entries.
+
+``METHOD_ROPES`` (Popov et al. 2007)
+    walks from leaf to leaf through the rope of the face the ray leaves by
+    (:func:`rope_walk`). The leaf's box gives the exit distance and face; the walk
+    descends from the rope to the cell holding the exit point (of two cells meeting
+    within the culling pad of it, the nearer one,
+    :func:`~rayaccel.kdtree.traverse.common.descend`). It stops on a null rope, once
+    the exit lies beyond the closest hit, or at the first hit of an any-hit query.
+    A ray lying in a split plane follows the lower side of such planes first, then
+    once per combination of sides of their axes. A safety cap of four steps per
+    leaf reports an overflow instead of looping.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from rayaccel._jit import cpu_inline
+from rayaccel.counters import Counter
+from rayaccel.dtypes import FloatArray, IntArray
+from rayaccel.kdtree.layouts.kdtree import (
+    NODE_BYTES,
+    REF_BYTES,
+    STACK_SIZE,
+    TRIANGLE_BYTES,
+    KdTraceLayout,
+)
+from rayaccel.kdtree.traverse.common import descend, split_distance
+from rayaccel.kernels.aabb import ray_box_exit
+from rayaccel.queries import QUERY_ANY
+from rayaccel.trace.leaf import intersect_leaf
+from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.run import body_kernels
+from rayaccel.trace.skeleton import store_hit
+
+INF32 = np.float32(np.inf)
+ZERO32 = np.float32(0.0)
+_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
+_BOX_BYTES = 24
+
+METHOD_RESTART = 0
+METHOD_BACKTRACK = 1
+METHOD_SHORT_STACK = 2
+METHOD_ROPES = 3
+
+
+class StacklessArrays(NamedTuple):
+    """The trace layout plus what one method needs (empty arrays for the others)."""
+
+    node_f: FloatArray
+    node_i: IntArray
+    leaf_first: IntArray
+    leaf_count: IntArray
+    tri: FloatArray
+    tri_prim: IntArray
+    root_box: FloatArray
+    node_box: FloatArray  # (n, 6) interleaved cells (backtrack) or (n_leaves, 6) (ropes)
+    link: IntArray  # (n,) parents (backtrack) or (n_leaves, 6) ropes flattened (ropes)
+
+
+def stackless_arrays(
+    layout: KdTraceLayout, box: FloatArray | None = None, link: IntArray | None = None
+) -> StacklessArrays:
+    """Return the kernel argument: ``layout``'s arrays plus boxes and links."""
+    t = layout.arrays()
+    return StacklessArrays(
+        t.node_f, t.node_i, t.leaf_first, t.leaf_count, t.tri, t.tri_prim, t.root_box,
+        np.zeros((1, 6), np.float32) if box is None else box,
+        np.zeros(1, np.int32) if link is None else link,
+    )  # fmt: skip
+
+
+def box_exit_py(box, row, ox, oy, oz, ix, iy, iz, fx, fy, fz):
+    """Return ``(exit distance, exit axis)`` of interleaved box ``row`` (NaN ignored, no pad)."""
+    t_x = (box[row, fx] - ox) * ix
+    t_y = (box[row, fy] - oy) * iy
+    t_z = (box[row, fz] - oz) * iz
+    leave = INF32
+    axis = -1
+    if t_x < leave:
+        leave = t_x
+        axis = 0
+    if t_y < leave:
+        leave = t_y
+        axis = 1
+    if t_z < leave:
+        leave = t_z
+        axis = 2
+    return leave, axis
+
+
+box_exit = cpu_inline(box_exit_py)
+
+
+def box_enter_py(box, row, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, t_entry, t_exit, pad):
+    """Return where the ray's padded segment enters interleaved box ``row``, at least ``t_entry``.
+
+    (``t_exit`` and the far offsets are unused; the signature mirrors the slab tests.)
+    """
+    _ = (t_exit, fx, fy, fz)
+    t_x = (box[row, nx] - ox) * ix
+    t_y = (box[row, ny] - oy) * iy
+    t_z = (box[row, nz] - oz) * iz
+    enter = t_entry
+    if t_x - pad > enter:
+        enter = t_x - pad
+    if t_y - pad > enter:
+        enter = t_y - pad
+    if t_z - pad > enter:
+        enter = t_z - pad
+    return enter
+
+
+box_enter = cpu_inline(box_enter_py)
+
+
+def rope_walk_py(
+    kd, t_entry, t_exit, ox, oy, oz, ix, iy, iz, fx, fy, fz,
+    okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+    best_prim, best_u, best_v, stop_at_first, n_leaf_total,
+):  # fmt: skip
+    """Walk the leaves along the ray by their ropes (Popov et al. 2007); see the module docstring.
+
+    Returns ``(t_hit, prim, u, v, overflowed, nodes, leaves, empty leaves, triangle
+    tests, rope steps, bytes)``.
+    """
+    n_nodes = 0
+    n_leaves = 0
+    n_empty = 0
+    n_prim = 0
+    n_rope = 0
+    n_bytes = 0
+    overflowed = 0
+    box_hi = t_hit + pad
+    mask = 0 if t_entry != INF32 else -1
+    done_masks = 0
+    in_plane = 0
+    finished = False
+    while mask >= 0 and not finished:
+        t = t_entry
+        start = 0
+        n_walk = 0
+        while True:
+            leaf_node, tf, seen, n_desc = descend(
+                kd.node_f, kd.node_i, start, t, t_exit, ox, oy, oz, ix, iy, iz, mask, pad
+            )
+            in_plane |= seen
+            n_nodes += n_desc
+            n_bytes += NODE_BYTES * n_desc
+            leaf = kd.node_i[leaf_node, 1] >> 2
+            first = kd.leaf_first[leaf]
+            count = kd.leaf_count[leaf]
+            n_leaves += 1
+            if count == 0:
+                n_empty += 1
+            n_bytes += _PRIM_BYTES * count + _BOX_BYTES
+            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
+                kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,
+            )  # fmt: skip
+            box_hi = t_hit + pad
+            n_prim += tested
+            if stop_at_first and best_prim >= 0:
+                finished = True
+                break
+            leave, exit_axis = box_exit(kd.node_box, leaf, ox, oy, oz, ix, iy, iz, fx, fy, fz)
+            if leave < tf:
+                tf = leave
+            if tf > box_hi or tf >= t_exit or exit_axis < 0:
+                break
+            inv_e = ix if exit_axis == 0 else (iy if exit_axis == 1 else iz)
+            rope = kd.link[6 * leaf + 2 * exit_axis + (1 if inv_e >= 0 else 0)]
+            if rope < 0:
+                break
+            n_walk += 1
+            if n_walk > 4 * n_leaf_total + 8:
+                overflowed = 1
+                finished = True
+                break
+            n_rope += 1
+            start = rope
+            if tf > t:
+                t = tf
+        done_masks |= 1 << mask
+        mask = -1
+        if not finished:
+            for m in range(8):
+                if (m & ~in_plane) == 0 and not (done_masks >> m) & 1:
+                    mask = m
+                    break
+    return (
+        t_hit, best_prim, best_u, best_v, overflowed, n_nodes, n_leaves, n_empty, n_prim,
+        n_rope, n_bytes,
+    )  # fmt: skip
+
+
+rope_walk = cpu_inline(rope_walk_py)
+
+
+def make_scratch_py(kd):
+    """Return one worker's short-stack ring (node, segment start and end)."""
+    ring_node = np.empty(STACK_SIZE, dtype=np.int32)
+    ring_tn = np.empty(STACK_SIZE, dtype=np.float32)
+    ring_tf = np.empty(STACK_SIZE, dtype=np.float32)
+    return ring_node, ring_tn, ring_tf
+
+
+make_scratch = cpu_inline(make_scratch_py)
+
+
+@functools.cache
+def _body(method: int, size: int) -> Any:
+    """Return the per-chunk body of one method (``size``: the short stack's ring)."""
+
+    def trace_rays_py(
+        kd, scratch, origin, direction, tmin, tmax, begin, end,
+        hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+    ):  # fmt: skip
+        _ = (method, size)
+        ring_node, ring_tn, ring_tf = scratch
+        node_f = kd.node_f
+        node_i = kd.node_i
+        n_leaf_total = kd.leaf_first.shape[0]
+        n_overflowed = 0
+        for r in range(begin, end):
+            overflowed = 0
+            n_steps = 0
+            n_nodes = 0
+            n_leaves = 0
+            n_empty = 0
+            n_prim = 0
+            n_restarts = 0
+            n_back = 0
+            n_rope = 0
+            peak = 0
+            n_bytes = 0
+            (
+                valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+            ) = ray_prologue(origin, direction, tmin, tmax, r, kd.root_box)  # fmt: skip
+            best_prim = -1
+            best_u = ZERO32
+            best_v = ZERO32
+            if valid:
+                box_lo = t_lo - pad
+                box_hi = t_hit + pad
+                root_box = kd.root_box
+                t_entry = root_entry(
+                    root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, box_lo, box_hi
+                )
+                t_exit = ray_box_exit(
+                    ox, oy, oz, ix, iy, iz, root_box[fx], root_box[fy], root_box[fz]
+                )
+                if box_hi < t_exit:
+                    t_exit = box_hi
+                if method == METHOD_ROPES:
+                    (
+                        t_hit, best_prim, best_u, best_v, overflowed, n_nodes, n_leaves,
+                        n_empty, n_prim, n_rope, n_bytes,
+                    ) = rope_walk(
+                        kd, t_entry, t_exit, ox, oy, oz, ix, iy, iz, fx, fy, fz,
+                        okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                        best_prim, best_u, best_v, query == QUERY_ANY, n_leaf_total,
+                    )  # fmt: skip
+                    n_steps = n_nodes
+                elif t_entry != INF32:
+                    trail = 0
+                    branch = 0
+                    node = 0
+                    level = 0
+                    tn = t_entry
+                    tf = t_exit
+                    n_ring = 0
+                    head = 0
+                    push_node = 0
+                    push_level = 0
+                    push_tn = t_entry
+                    push_tf = t_exit
+                    push_set = False
+                    while True:
+                        # ---- descend from (node, level, [tn, tf]) by the trail
+                        pruned = False
+                        while True:
+                            if with_stats:
+                                n_steps += 1
+                                n_nodes += 1
+                                n_bytes += NODE_BYTES
+                            if tn > box_hi:
+                                pruned = True
+                                break
+                            bits = node_i[node, 1]
+                            axis = bits & 3
+                            if axis == 3:
+                                break
+                            child = bits >> 2
+                            ts, inv = split_distance(axis, node_f[node, 0], ox, oy, oz, ix, iy, iz)
+                            near = child if inv >= 0 else child + 1
+                            far = 2 * child + 1 - near
+                            near_needed = not (ts < tn - pad)
+                            far_needed = not (ts > tf + pad)
+                            near_tf = ts + pad
+                            if not (near_tf < tf):
+                                near_tf = tf
+                            far_tn = ts - pad
+                            if not (far_tn > tn):
+                                far_tn = tn
+                            if near_needed and far_needed:
+                                if method == METHOD_SHORT_STACK and not push_set:
+                                    # The push-down root: the first node with two children.
+                                    push_set = True
+                                    push_node = node
+                                    push_level = level
+                                    push_tn = tn
+                                    push_tf = tf
+                                if (trail >> level) & 1:
+                                    node = far
+                                    tn = far_tn
+                                else:
+                                    branch |= np.int64(1) << level
+                                    if method == METHOD_SHORT_STACK:
+                                        ring_node[head] = far
+                                        ring_tn[head] = far_tn
+                                        ring_tf[head] = tf
+                                        head = head + 1 if head + 1 < size else 0
+                                        if n_ring < size:
+                                            n_ring += 1
+                                        if with_stats:
+                                            peak = max(peak, n_ring)
+                                    node = near
+                                    tf = near_tf
+                            elif near_needed:
+                                node = near
+                                tf = near_tf
+                            elif far_needed:
+                                node = far
+                                tn = far_tn
+                            else:
+                                pruned = True
+                                break
+                            level += 1
+                        if not pruned:
+                            leaf = node_i[node, 1] >> 2
+                            first = kd.leaf_first[leaf]
+                            count = kd.leaf_count[leaf]
+                            if with_stats:
+                                n_leaves += 1
+                                if count == 0:
+                                    n_empty += 1
+                                n_bytes += _PRIM_BYTES * count
+                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                                kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
+                                kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                                query == QUERY_ANY,
+                            )  # fmt: skip
+                            box_hi = t_hit + pad
+                            if with_stats:
+                                n_prim += tested
+                            if query == QUERY_ANY and best_prim >= 0:
+                                break
+                        # ---- pop: the deepest level whose second child is pending
+                        if branch == 0:
+                            break
+                        k = level - 1
+                        while not (branch >> k) & 1:
+                            k -= 1
+                        branch &= ~(np.int64(1) << k)
+                        trail = (trail & ((np.int64(1) << k) - 1)) | (np.int64(1) << k)
+                        if method == METHOD_SHORT_STACK and n_ring > 0:
+                            head = head - 1 if head > 0 else size - 1
+                            n_ring -= 1
+                            node = ring_node[head]
+                            tn = ring_tn[head]
+                            tf = ring_tf[head]
+                            level = k + 1
+                        elif method == METHOD_BACKTRACK:
+                            # Walk up to the level-k node; its segment from its box.
+                            while level > k:
+                                node = kd.link[node]
+                                level -= 1
+                                if with_stats:
+                                    n_back += 1
+                                    n_bytes += _BOX_BYTES
+                            tn = box_enter(
+                                kd.node_box, node, ox, oy, oz, ix, iy, iz,
+                                nx, ny, nz, fx, fy, fz, t_entry, t_exit, pad,
+                            )  # fmt: skip
+                            tf, _a = box_exit(kd.node_box, node, ox, oy, oz, ix, iy, iz, fx, fy, fz)
+                            tf = tf + pad
+                            if t_exit < tf:
+                                tf = t_exit
+                            if with_stats:
+                                n_restarts += 1
+                        else:
+                            if method == METHOD_SHORT_STACK:
+                                node = push_node
+                                level = push_level
+                                tn = push_tn
+                                tf = push_tf
+                            else:
+                                node = 0
+                                level = 0
+                                tn = t_entry
+                                tf = t_exit
+                            if with_stats:
+                                n_restarts += 1
+            if with_stats:
+                counters[r, Counter.STEPS] = n_steps
+                counters[r, Counter.NODES] = n_nodes
+                counters[r, Counter.LEAVES] = n_leaves
+                counters[r, Counter.EMPTY_LEAVES] = n_empty
+                counters[r, Counter.BOX_TESTS] = 1 if valid else 0
+                counters[r, Counter.PRIM_TESTS] = n_prim
+                counters[r, Counter.STACK_PEAK] = peak
+                counters[r, Counter.RESTARTS] = n_restarts
+                counters[r, Counter.BACKTRACKS] = n_back
+                counters[r, Counter.ROPE_STEPS] = n_rope
+                counters[r, Counter.BYTES] = n_bytes
+            store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
+            n_overflowed += overflowed
+        return n_overflowed
+
+    return cpu_inline(trace_rays_py)
+
+
+@functools.cache
+def trace_kernel(method: int, size: int) -> Any:
+    """Return ``kernel_for(query, with_stats, parallel)`` of one method (and ring size)."""
+    return body_kernels(make_scratch, _body(method, size))

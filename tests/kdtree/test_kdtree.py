@@ -1,0 +1,272 @@
+"""kd-trees: builder invariants, degenerate input, and every traversal against the oracle.
+
+The registry-driven conformance suite checks every kd builder and traversal on the
+procedural and bundled scenes; here the kd-specific edge cases: triangles in split
+planes and flat cells, rays lying in split planes or starting on them, axis-parallel
+rays with ±0 components, many copies of one triangle, termination of the stackless
+traversals, short-stack sizes, and ropes against the stack bit for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import rayaccel
+import reference
+from rayaccel import registry
+from rayaccel.errors import InvalidInputError, StructureInvariantError
+from rayaccel.kdtree.layouts.kdtree import MAX_DEPTH, KdTree, max_depth_for
+from rayaccel.rays.batch import RayBatch
+
+BUILDS = [
+    ("kdtree.sah", {}),
+    ("kdtree.sah", {"perfect_splits": False}),
+    ("kdtree.median", {}),
+]
+TRAVERSALS = [
+    ("kdtree.stack", {}),
+    ("kdtree.stack", {"order": "position"}),
+    ("kdtree.restart", {}),
+    ("kdtree.backtrack", {}),
+    ("kdtree.short_stack", {}),
+    ("kdtree.ropes", {}),
+    ("kdtree.ropes", {"optimize": False}),
+]
+STACKLESS = ["kdtree.restart", "kdtree.backtrack", "kdtree.short_stack", "kdtree.ropes"]
+
+
+def _ids(pairs):
+    return [f"{k}-{'-'.join(f'{a}={b}' for a, b in o.items())}" if o else k for k, o in pairs]
+
+
+@pytest.fixture(scope="module")
+def sphere_accels():
+    mesh = reference.icosphere(2)
+    return {(k, tuple(o.items())): rayaccel.build(mesh, k, **o) for k, o in BUILDS}
+
+
+def _check_all(accel, rays, label=""):
+    """Every kd traversal returns the oracle's closest and any hits."""
+    mesh = accel.mesh
+    ref = reference.oracle(mesh, rays)
+    tri9 = reference.tri9(mesh)
+    for key, opts in TRAVERSALS:
+        closest = accel.trace(rays, traversal=key, **opts)
+        reference.assert_closest_matches(tri9, rays, closest, ref, f"{label} {key} {opts}")
+        any_hit = accel.trace(rays, query="any", traversal=key, **opts)
+        reference.assert_any_matches(tri9, rays, any_hit, ref, f"{label} {key} {opts}")
+    return ref
+
+
+def test_registered():
+    assert registry.default_builder("kdtree") == "kdtree.sah"
+    assert registry.default_traversal("kdtree") == "kdtree.stack"
+    keys = set(registry.keys("traversal", "kdtree"))
+    assert {"kdtree.stack", *STACKLESS} <= keys
+
+
+@pytest.mark.parametrize(("key", "opts"), BUILDS, ids=_ids(BUILDS))
+def test_builders_validate_and_report(sphere_accels, key, opts):
+    accel = sphere_accels[key, tuple(opts.items())]
+    accel.validate()
+    kd = accel.structure
+    assert isinstance(kd, KdTree)
+    info = accel.info()
+    for name in ("n_nodes", "n_leaves", "n_empty_leaves", "n_refs", "depth", "sah", "bytes"):
+        assert name in info, name
+    assert info["n_refs"] >= accel.mesh.n_triangles
+    assert info["n_nodes"] == 2 * info["n_leaves"] - 1
+    assert info["depth"] <= max_depth_for(accel.mesh.n_triangles)
+    assert kd.nbytes() == 8 * kd.n_nodes + 8 * kd.n_leaves + 4 * kd.n_refs
+
+
+def test_perfect_splits_list_fewer_references(sphere_accels):
+    perfect = sphere_accels["kdtree.sah", ()].structure
+    boxes = sphere_accels["kdtree.sah", (("perfect_splits", False),)].structure
+    assert perfect.perfect_splits
+    assert not boxes.perfect_splits
+    assert perfect.sah_cost() < boxes.sah_cost()
+
+
+def test_validate_catches_a_missing_reference(sphere_accels):
+    kd = sphere_accels["kdtree.sah", ()].structure
+    leaf = int(np.argmax(kd.leaf_count))
+    count = kd.leaf_count.copy()
+    count[leaf] -= 1
+    broken = KdTree(kd.nodes, kd.leaf_first, count, kd.prim_index, kd.lo, kd.hi, kd.n_prims)
+    with pytest.raises(StructureInvariantError):
+        broken.validate(reference.icosphere(2).triangles())
+    bad_split = kd.nodes.copy()
+    bad_split[0, 0] = kd.hi[kd.node_bits[0] & 3] + 1
+    broken = KdTree(
+        bad_split, kd.leaf_first, kd.leaf_count, kd.prim_index, kd.lo, kd.hi, kd.n_prims
+    )
+    with pytest.raises(StructureInvariantError, match="split outside"):
+        broken.validate()
+
+
+def test_options_checked():
+    mesh = reference.icosphere(1)
+    with pytest.raises(InvalidInputError):
+        rayaccel.build(mesh, "kdtree.sah", empty_bonus=0.0)
+    with pytest.raises(InvalidInputError):
+        rayaccel.build(mesh, "kdtree.sah", max_depth=MAX_DEPTH + 1)
+    with pytest.raises(InvalidInputError):
+        rayaccel.build(mesh, "kdtree.median", max_leaf_size=0)
+    accel = rayaccel.build(mesh, "kdtree.sah")
+    rays = RayBatch(np.zeros((1, 3)), np.ones((1, 3)))
+    with pytest.raises(InvalidInputError):
+        accel.trace(rays, traversal="kdtree.stack", order="sideways")
+    with pytest.raises(InvalidInputError):
+        accel.trace(rays, traversal="kdtree.short_stack", size=0)
+
+
+@pytest.mark.parametrize(("key", "opts"), BUILDS, ids=_ids(BUILDS))
+def test_every_traversal_matches_the_oracle(sphere_accels, key, opts):
+    accel = sphere_accels[key, tuple(opts.items())]
+    rays = reference.mixed_rays(accel.mesh, 700, seed=3)
+    _check_all(accel, rays, key)
+
+
+def _split_plane_rays(kd: KdTree, n: int, seed: int) -> RayBatch:
+    """Rays lying in the first inner splits (zero component, ±0) and starting on them."""
+    rng = np.random.default_rng(seed)
+    inner = np.flatnonzero((kd.node_bits & 3) != 3)[:16]
+    origins, directions = [], []
+    lo, hi = kd.lo.astype(np.float64), kd.hi.astype(np.float64)
+    for node in inner:
+        axis = int(kd.node_bits[node] & 3)
+        split = float(kd.node_split[node])
+        o = lo + rng.random((n, 3)) * (hi - lo)
+        o[:, axis] = split
+        d = rng.normal(size=(n, 3))
+        in_plane = d.copy()
+        in_plane[:, axis] = np.where(rng.random(n) < 0.5, 0.0, -0.0)
+        origins += [o, o]
+        directions += [in_plane, d]
+    return RayBatch(np.concatenate(origins), np.concatenate(directions))
+
+
+@pytest.mark.parametrize(("key", "opts"), BUILDS, ids=_ids(BUILDS))
+def test_rays_in_and_from_split_planes(sphere_accels, key, opts):
+    accel = sphere_accels[key, tuple(opts.items())]
+    rays = _split_plane_rays(accel.structure, 24, seed=5)
+    ref = _check_all(accel, rays, key)
+    assert ref.hit.any()
+
+
+def test_all_triangles_in_one_plane():
+    """A flat scene: every triangle planar on z; rays from both sides and in the plane."""
+    mesh = reference.grid_plane(8, z=0.5)
+    for key, opts in BUILDS:
+        accel = rayaccel.build(mesh, key, **opts)
+        accel.validate()
+        rng = np.random.default_rng(1)
+        n = 300
+        target = np.column_stack([rng.random(n) * 8, rng.random(n) * 8, np.full(n, 0.5)])
+        # Exactly at vertices and edges of the grid too.
+        target[: n // 3, :2] = np.round(target[: n // 3, :2] * 2) / 2
+        o = target + reference.random_unit(rng, n) * 3
+        in_plane_o = np.column_stack(
+            [rng.random(n) * 10 - 1, rng.random(n) * 10 - 1, np.full(n, 0.5)]
+        )
+        in_plane_d = np.column_stack(
+            [rng.normal(size=n), rng.normal(size=n), np.where(rng.random(n) < 0.5, 0.0, -0.0)]
+        )
+        rays = RayBatch(np.concatenate([o, in_plane_o]), np.concatenate([target - o, in_plane_d]))
+        ref = _check_all(accel, rays, key)
+        assert ref.hit[:n].mean() > 0.9
+
+
+@pytest.mark.parametrize("key", ["kdtree.sah", "kdtree.median"])
+def test_many_copies_of_one_triangle(key, full):
+    n = 100_000 if full or key == "kdtree.sah" else 20_000
+    tri = np.broadcast_to(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64), (n, 3, 3))
+    mesh = rayaccel.TriangleMesh(tri.reshape(-1, 3), np.arange(3 * n).reshape(-1, 3))
+    accel = rayaccel.build(mesh, key)
+    accel.validate()
+    assert accel.structure.depth() <= MAX_DEPTH
+    rng = np.random.default_rng(0)
+    o = np.column_stack(
+        [
+            rng.random(64) * 1.5 - 0.25,
+            rng.random(64) * 1.5 - 0.25,
+            np.where(rng.random(64) < 0.5, 1.0, -1.0),
+        ]
+    )
+    d = np.column_stack([rng.normal(size=64) * 0.1, rng.normal(size=64) * 0.1, -o[:, 2]])
+    ref = _check_all(accel, RayBatch(o, d), key)
+    assert ref.hit.any()
+    assert (~ref.hit).any()
+
+
+def test_axis_parallel_rays_with_signed_zeros(sphere_accels):
+    accel = sphere_accels["kdtree.sah", ()]
+    kd = accel.structure
+    rng = np.random.default_rng(7)
+    n = 400
+    d = np.zeros((n, 3))
+    axis = rng.integers(0, 3, n)
+    d[np.arange(n), axis] = rng.choice([-1.0, 1.0], n)
+    d[rng.random((n, 3)) < 0.5] *= -1.0  # -0.0 on the zero components
+    o = kd.lo + rng.random((n, 3)) * (kd.hi - kd.lo)
+    # Half of them start on vertices' coordinates (planes of perfect splits).
+    v = accel.mesh.vertices[rng.integers(0, accel.mesh.n_vertices, n // 2)]
+    o[: n // 2] = v
+    o[np.arange(n // 2), axis[: n // 2]] -= 3 * d[np.arange(n // 2), axis[: n // 2]]
+    ref = _check_all(accel, RayBatch(o, d), "axis-parallel")
+    assert ref.hit.any()
+
+
+@pytest.mark.parametrize("key", STACKLESS)
+def test_stackless_terminate_with_bounded_descents(sphere_accels, key):
+    """kd-restart always finishes: at most one descent per leaf (x8 passes in planes)."""
+    accel = sphere_accels["kdtree.sah", ()]
+    kd = accel.structure
+    rays = reference.concat(
+        reference.mixed_rays(accel.mesh, 400, seed=9), _split_plane_rays(kd, 8, seed=2)
+    )
+    hits = accel.trace(rays, traversal=key, stats=True)
+    descents = hits.stats["restarts"] + hits.stats["rope_steps"] + 1
+    assert descents.max() <= 8 * kd.n_leaves
+    assert (hits.stats["leaves"] <= 8 * kd.n_leaves).all()
+    assert (hits.stats["nodes"] <= 8 * kd.n_leaves * (kd.depth() + 1)).all()
+
+
+@pytest.mark.parametrize("size", [1, 3, 64])
+def test_short_stack_sizes_identical_to_stack(sphere_accels, size):
+    accel = sphere_accels["kdtree.sah", ()]
+    rays = reference.mixed_rays(accel.mesh, 500, seed=11)
+    stack = accel.trace(rays, traversal="kdtree.stack", stats=True)
+    short = accel.trace(rays, traversal="kdtree.short_stack", size=size, stats=True)
+    assert np.array_equal(stack.t, short.t)
+    assert np.array_equal(stack.prim, short.prim)
+    assert (short.stats["stack_peak"] <= size).all()
+    if size == 64:
+        assert (short.stats["restarts"] == 0).all()
+
+
+@pytest.mark.parametrize("optimize", [True, False])
+def test_ropes_identical_to_stack(sphere_accels, optimize):
+    accel = sphere_accels["kdtree.sah", ()]
+    rays = reference.mixed_rays(accel.mesh, 700, seed=13)
+    stack = accel.trace(rays, traversal="kdtree.stack")
+    ropes = accel.trace(rays, traversal="kdtree.ropes", optimize=optimize, stats=True)
+    assert np.array_equal(stack.t, ropes.t)
+    assert np.array_equal(stack.prim, ropes.prim)
+    assert np.array_equal(stack.u, ropes.u)
+    info = accel.info()
+    assert info["bytes"] > accel.structure.nbytes()
+
+
+def test_stats_counters_consistent(sphere_accels):
+    accel = sphere_accels["kdtree.sah", ()]
+    rays = reference.mixed_rays(accel.mesh, 400, seed=17)
+    for key, opts in TRAVERSALS:
+        plain = accel.trace(rays, traversal=key, **opts)
+        counted = accel.trace(rays, traversal=key, stats=True, **opts)
+        reference.assert_hits_identical(plain, counted, key)
+        s = counted.stats
+        assert (s["empty_leaves"] <= s["leaves"]).all()
+        assert (s["nodes"] >= s["leaves"]).all()
