@@ -124,6 +124,7 @@ def clip_triangle_box_py(tri, prim, lo, hi, poly, scratch, min_vertices):
     tri : (F, 3, 3) ndarray
         Triangle corners (float32; any number type for an exact clip).
     prim : int
+        Row of ``tri`` to clip.
     lo, hi : (3,) ndarray
         Box corners.
     poly, scratch : (k, 3) ndarray
@@ -190,6 +191,7 @@ def polygon_bounds_py(poly, m, lo, hi, out):
     poly : (k, 3) float64 ndarray
         A polygon from :func:`clip_triangle_box_py` (``m >= 1``).
     m : int
+        Its vertex count (the value :func:`clip_triangle_box_py` returned).
     lo, hi : (3,) float32 ndarray
         The box it was clipped to: the bounds are intersected with it, since the
         outward rounding may step just outside.

@@ -47,6 +47,7 @@ def triangle_box_overlap_py(tri, prim, lo, hi):
     tri : (F, 3, 3) float32 ndarray
         Triangle corners.
     prim : int
+        Row of ``tri`` to test.
     lo, hi : (3,) float32 ndarray
         Box corners, ``lo <= hi`` (equal on an axis for a flat box).
 
