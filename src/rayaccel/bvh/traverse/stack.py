@@ -300,6 +300,5 @@ def trace_bvh2_stack(
     """
     _ = options
     pairs = stack_layout(bvh, mesh, cache)
-    return run_trace(
-        trace_kernel, pairs.arrays(), rays, query, stats, "the tree is deeper than MAX_DEPTH"
-    )
+    hint = f"the tree is deeper than its {STACK_SIZE}-entry stack allows (MAX_DEPTH)"
+    return run_trace(trace_kernel, pairs.arrays(), rays, query, stats, hint)
