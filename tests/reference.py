@@ -55,6 +55,17 @@ def is_core_pair(build_key: str, traversal: str) -> bool:
     return is_default_builder(build_key) or traversal == registry.default_traversal(structure)
 
 
+def fine_options(build_key: str) -> dict:
+    """Options that make ``build_key``'s structure as fine as it goes, for stress tests:
+    one primitive per leaf for hierarchies (``max_leaf_size=1``); none for grids."""
+    import dataclasses
+
+    from rayaccel import registry
+
+    fields = {f.name for f in dataclasses.fields(registry.get_chain(build_key)[0].options)}
+    return {"max_leaf_size": 1} if "max_leaf_size" in fields else {}
+
+
 def builder_traversal_pairs() -> list:
     """``pytest.param(builder, traversal)`` for every registered builder and traversal of
     its structure; pairs outside the core ones are marked ``cross``."""

@@ -96,7 +96,7 @@ CONCURRENT_SCRIPT = textwrap.dedent(
         batches.append(RayBatch(o, d))
     for builder in registry.keys("builder"):
         accel = rayaccel.build(mesh, builder)
-        for traversal in registry.keys("traversal", "bvh2"):
+        for traversal in registry.keys("traversal", registry.get(builder).structure):
             expected = [accel.trace(b, traversal=traversal) for b in batches]
             blocked = [accel.occluded(b.origin, b.direction, traversal=traversal)
                        for b in batches]

@@ -40,7 +40,7 @@ def accels():
         if (builder, name) not in cache:
             # max_leaf_size=1 puts neighbouring triangles in different leaves and boxes.
             cache[builder, name] = rayaccel.build(mesh or MESHES[name], builder,
-                                                  max_leaf_size=1)
+                                                  **reference.fine_options(builder))
         return cache[builder, name]
 
     return get

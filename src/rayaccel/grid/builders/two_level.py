@@ -104,9 +104,13 @@ def sub_resolutions(size: np.ndarray, counts: np.ndarray, density: float) -> np.
 @cpu_kernel(parallel=True)
 def _leaf_pairs(
     tri, top_of_ref, top_prim, lo, size, res, sub_res, leaf_first, leaf_size, margin,
-    offsets, keys, values, fill,
+    counts, offsets, keys, values, fill,
 ):  # fmt: skip
-    """Count (``fill`` False) or write the leaf cells each top reference overlaps."""
+    """Count or write the leaf cells each top reference overlaps.
+
+    ``fill`` False: counts into ``counts``; True: pairs written from ``offsets``, with no
+    test when the count says every candidate leaf overlaps.
+    """
     n = top_prim.shape[0]
     n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
     rx = res[0]
@@ -147,8 +151,10 @@ def _leaf_pairs(
                     keys[slot] = leaf_first[c] + first[0] + lrx * (first[1] + lry * first[2])
                     values[slot] = p
                 else:
-                    offsets[i] = 1
+                    counts[i] = 1
                 continue
+            n_cand = (last[0] - first[0] + 1) * (last[1] - first[1] + 1) * (last[2] - first[2] + 1)
+            every = fill and counts[i] == n_cand
             for z in range(first[2], last[2] + 1):
                 b_lo[2] = top_lo[2] + np.float32(z) * leaf_size[c, 2] - margin[c, 2]
                 b_hi[2] = top_lo[2] + np.float32(z + 1) * leaf_size[c, 2] + margin[c, 2]
@@ -158,13 +164,13 @@ def _leaf_pairs(
                     for x in range(first[0], last[0] + 1):
                         b_lo[0] = top_lo[0] + np.float32(x) * leaf_size[c, 0] - margin[c, 0]
                         b_hi[0] = top_lo[0] + np.float32(x + 1) * leaf_size[c, 0] + margin[c, 0]
-                        if triangle_box_overlap(tri, p, b_lo, b_hi):
+                        if every or triangle_box_overlap(tri, p, b_lo, b_hi):
                             if fill:
                                 keys[slot] = leaf_first[c] + x + lrx * (y + lry * z)
                                 values[slot] = p
                             slot += 1
             if not fill:
-                offsets[i] = slot
+                counts[i] = slot
 
 
 @register(
@@ -215,7 +221,7 @@ def build_two_level_grid(
     n_ref = top.n_refs
     offsets = np.empty(n_ref, dtype=np.int64)
     args = (tri, top_of_ref, top.prim_index, top.lo, size, top.res, sub_res, leaf_first,
-            leaf_size, margin)  # fmt: skip
+            leaf_size, margin, offsets)  # fmt: skip
     _leaf_pairs(*args, offsets, np.empty(0, np.int64), np.empty(0, np.int32), False)
     total = np.cumsum(offsets)
     n_pairs = int(total[-1]) if n_ref else 0

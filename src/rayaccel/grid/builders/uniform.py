@@ -200,10 +200,11 @@ def _prim_boxes(tri, lo, inv, margin, res, first, last):
 
 
 @cpu_kernel(parallel=True)
-def _pairs(tri, lo, size, margin, res, first, last, offsets, keys, values, fill):
+def _pairs(tri, lo, size, margin, res, first, last, counts, offsets, keys, values, fill):
     """Count or write the cells each triangle overlaps.
 
-    ``fill`` False: counts into ``offsets[p]``; True: pairs written from ``offsets[p]``.
+    ``fill`` False: counts into ``counts[p]``; True: pairs written from ``offsets[p]``,
+    with no test when the count says every candidate cell overlaps.
     """
     n = tri.shape[0]
     n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
@@ -226,8 +227,9 @@ def _pairs(tri, lo, size, margin, res, first, last, offsets, keys, values, fill)
                     keys[slot] = x0 + rx * (y0 + ry * np.int64(z0))
                     values[slot] = p
                 else:
-                    offsets[p] = 1
+                    counts[p] = 1
                 continue
+            every = fill and counts[p] == (x1 - x0 + 1) * (y1 - y0 + 1) * (z1 - z0 + 1)
             for z in range(z0, z1 + 1):
                 b_lo[2] = lo[2] + np.float32(z) * size[2] - margin[2]
                 b_hi[2] = lo[2] + np.float32(z + 1) * size[2] + margin[2]
@@ -237,13 +239,13 @@ def _pairs(tri, lo, size, margin, res, first, last, offsets, keys, values, fill)
                     for x in range(x0, x1 + 1):
                         b_lo[0] = lo[0] + np.float32(x) * size[0] - margin[0]
                         b_hi[0] = lo[0] + np.float32(x + 1) * size[0] + margin[0]
-                        if triangle_box_overlap(tri, p, b_lo, b_hi):
+                        if every or triangle_box_overlap(tri, p, b_lo, b_hi):
                             if fill:
                                 keys[slot] = x + rx * (y + ry * np.int64(z))
                                 values[slot] = p
                             slot += 1
             if not fill:
-                offsets[p] = slot
+                counts[p] = slot
 
 
 @cpu_kernel(parallel=True)
@@ -309,7 +311,7 @@ def build_uniform(
     counts = np.empty(n, dtype=np.int64)
     dummy_k = np.empty(0, dtype=np.int64)
     dummy_v = np.empty(0, dtype=np.int32)
-    _pairs(tri, lo, size, margin, res, first, last, counts, dummy_k, dummy_v, False)
+    _pairs(tri, lo, size, margin, res, first, last, counts, counts, dummy_k, dummy_v, False)
     phases["count"] = (time.perf_counter() - t1) * 1e3
     t1 = time.perf_counter()
     offsets = np.empty(n, dtype=np.int64)
@@ -318,7 +320,7 @@ def build_uniform(
     n_refs = int(offsets[-1] + counts[-1])
     keys = np.empty(n_refs, dtype=np.int64)
     values = np.empty(n_refs, dtype=np.int32)
-    _pairs(tri, lo, size, margin, res, first, last, offsets, keys, values, True)
+    _pairs(tri, lo, size, margin, res, first, last, counts, offsets, keys, values, True)
     phases["fill"] = (time.perf_counter() - t1) * 1e3
     t1 = time.perf_counter()
     keys, values = radix_sort(keys, values, max(1, (n_cells - 1).bit_length()))
