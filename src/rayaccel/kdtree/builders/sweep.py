@@ -31,7 +31,9 @@ triangle in the child, not its whole box. Their new events (few: O(√N) straddl
 plane in a typical scene) are sorted and merged with the kept ones, so each node
 costs time linear in its events and the whole build O(N log N). Without perfect
 splits (``perfect_splits=False``, the thesis's KD_no_ps) the new bounds are the
-triangle's box cut by the child cell.
+triangle's box cut by the child cell. A straddling triangle whose part on one side
+clips to nothing (its box straddles the plane, the triangle does not) goes to the
+other side only.
 
 A triangle touching a plane only from one side, or lying in it, is therefore listed on
 one side only; the traversals visit closed cells so a ray meeting it on the plane
@@ -207,6 +209,9 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
     box_lo = np.empty(3, dtype=np.float32)
     box_hi = np.empty(3, dtype=np.float32)
     both_bounds = np.empty((tmp_cap // 2 + 1, 6), dtype=np.float32)
+    keep = np.empty(tmp_cap // 2 + 1, dtype=np.int8)
+    o_lo = np.empty(3, dtype=np.float32)
+    o_hi = np.empty(3, dtype=np.float32)
     # Output, grown as needed.
     out_split = np.empty(1024, dtype=np.float32)
     out_bits = np.empty(1024, dtype=np.int32)
@@ -409,6 +414,7 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
             n_prim = _grow_f(n_prim, n_new_max)
         if n_both > both_bounds.shape[0]:
             both_bounds = np.empty((2 * n_both, 6), dtype=np.float32)
+            keep = np.empty(2 * n_both, dtype=np.int8)
         write = child_begin
         for half in range(2):
             # half 0: the right child (written first); half 1: the left child.
@@ -440,6 +446,7 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
                     n_kept += 1
             # New events of the straddling triangles, axis by axis.
             j = 0
+            dropped = 0
             for i in range(begin, end):
                 if e_axis[i] == k and e_typ[i] == START and side[e_prim[i]] == _BOTH:
                     pr = e_prim[i]
@@ -450,8 +457,23 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
                     box_hi[1] = h_hi1
                     box_hi[2] = h_hi2
                     m = 0
+                    keep[j] = 1
                     if params.perfect_splits:
                         m = clip_triangle_box(tri, pr, box_lo, box_hi, poly, poly_tmp, 1)
+                        if m < 1:
+                            # The part on this side is empty: drop it here when the other
+                            # side's part is not (its box straddled the plane, the
+                            # triangle does not); keep it when rounding emptied both.
+                            for a in range(3):
+                                o_lo[a] = c_lo[a]
+                                o_hi[a] = c_hi[a]
+                            if half == 0:
+                                o_hi[k] = p
+                            else:
+                                o_lo[k] = p
+                            if clip_triangle_box(tri, pr, o_lo, o_hi, poly, poly_tmp, 1) >= 1:
+                                keep[j] = 0
+                                dropped += 1
                     if m >= 1:
                         polygon_bounds(poly, m, box_lo, box_hi, bounds)
                     else:
@@ -475,6 +497,9 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
                 for i in range(begin, end):
                     if e_axis[i] == k and e_typ[i] == START and side[e_prim[i]] == _BOTH:
                         pr = e_prim[i]
+                        if not keep[j]:
+                            j += 1
+                            continue
                         blo = both_bounds[j, a]
                         bhi = both_bounds[j, 3 + a]
                         if blo == 0:
@@ -540,7 +565,7 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
             s_node[sp] = child + 1 if half == 0 else child
             s_begin[sp] = start_w
             s_end[sp] = write
-            s_n[sp] = (n_right if half == 0 else n_left) + n_both
+            s_n[sp] = (n_right if half == 0 else n_left) + n_both - dropped
             s_depth[sp] = depth + 1
             s_lo[sp, 0] = h_lo0
             s_lo[sp, 1] = h_lo1

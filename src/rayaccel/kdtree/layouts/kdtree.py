@@ -185,9 +185,10 @@ class KdTree:
         every split inside its node's cell; every leaf referenced by exactly one node,
         its range inside ``prim_index``; ids in range, none twice in one leaf, every
         primitive listed somewhere. Given ``triangles (F, 3, 3)``: every listed
-        triangle (its box, without perfect splits) overlaps its leaf's (closed) cell,
-        and every triangle is listed in each leaf whose open cell it overlaps (the cell
-        shrunk by 1e-6 of the scene's size).
+        triangle (its box, without perfect splits) overlaps its leaf's closed cell grown
+        by 1e-6 of the scene's size (clipped bounds are rounded outward), and every
+        triangle is listed in each leaf whose open cell it overlaps (the cell shrunk by
+        1e-6 of the scene's size).
         """
         n = self.n_nodes
         if n == 0:
@@ -239,9 +240,10 @@ class KdTree:
         node_of_leaf = np.empty(self.n_leaves, dtype=INDEX)
         leaf_nodes = np.flatnonzero((self.node_bits & 3) == LEAF_AXIS)
         node_of_leaf[self.node_bits[leaf_nodes] >> 2] = leaf_nodes
+        grow = REAL(1e-6) * max(float((self.hi - self.lo).max()), 1e-30)
         bad = _check_listed_overlap(
             tri, self.prim_index, leaf_of_ref.astype(INDEX), node_of_leaf, lo, hi,
-            self.perfect_splits,
+            self.perfect_splits, grow,
         )  # fmt: skip
         if bad >= 0:
             raise StructureInvariantError(
@@ -366,16 +368,23 @@ def _check_topology(kd, max_depth):
 
 
 @cpu_kernel()
-def _check_listed_overlap(tri, prim_index, leaf_of_ref, node_of_leaf, lo, hi, exact):
+def _check_listed_overlap(tri, prim_index, leaf_of_ref, node_of_leaf, lo, hi, exact, grow):
     """Return the first reference whose triangle misses its leaf's closed cell, else -1.
 
-    Without ``exact`` (no perfect splits) the triangle's box is tested instead.
+    The cell is grown by ``grow`` on every side: clipped bounds are rounded outward, so
+    a triangle touching a cell within rounding is listed there. Without ``exact`` (no
+    perfect splits) the triangle's box is tested instead.
     """
+    g_lo = np.empty(3, dtype=np.float32)
+    g_hi = np.empty(3, dtype=np.float32)
     for ref in range(prim_index.shape[0]):
         node = node_of_leaf[leaf_of_ref[ref]]
         p = prim_index[ref]
         if exact:
-            if not triangle_box_overlap(tri, p, lo[node], hi[node]):
+            for a in range(3):
+                g_lo[a] = lo[node, a] - grow
+                g_hi[a] = hi[node, a] + grow
+            if not triangle_box_overlap(tri, p, g_lo, g_hi):
                 return ref
         else:
             for a in range(3):
