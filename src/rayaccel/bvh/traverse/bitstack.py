@@ -27,16 +27,13 @@ backtracking targets (``backtrack_sibling`` 0 levels up, ``_uncle`` 1,
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numba import prange
 
-from rayaccel._jit import cpu_kernel, prefetch_row
+from rayaccel._jit import cpu_inline, prefetch_row
 from rayaccel._variant import register
-from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, linked_layout
 from rayaccel.bvh.traverse.building_blocks import INF32, box_entry, check_trail_depth, pick
@@ -47,8 +44,8 @@ from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
-from rayaccel.trace.run import run_trace
-from rayaccel.trace.skeleton import RAY_CHUNK
+from rayaccel.trace.run import body_kernels, run_trace
+from rayaccel.trace.skeleton import store_hit
 
 ZERO32 = np.float32(0.0)
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
@@ -59,161 +56,158 @@ class BitstackOptions:
     """Options of the ``bvh2.bitstack`` traversal (none; kept for a uniform API)."""
 
 
-@functools.cache
-def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
-    """Return the compiled bitstack traversal for one (query, with_stats, parallel) variant."""
+def make_scratch_py(bvh):
+    """Return one worker's scratch: none (a ray's state is one int64 and its node)."""
+    return 0
 
-    @cpu_kernel(parallel=parallel)
-    def kernel(
-        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
-    ):
-        """Trace every ray over ``bvh`` (LinkedArrays) with a bitstack; return 0."""
-        _ = (query, with_stats, parallel)
-        n_rays = origin.shape[0]
-        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
-        box = bvh.inner_box
-        refs = bvh.inner_ref
-        # Workers take chunks of rays from a shared counter (rayaccel._work).
-        counter = new_counter()
-        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
-            while True:
-                chunk = next_item(counter, n_chunks)
-                if chunk < 0:
+
+def trace_rays_py(
+    bvh, scratch, origin, direction, tmin, tmax, begin, end,
+    hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+):  # fmt: skip
+    """Trace rays ``begin:end`` over ``bvh`` (LinkedArrays) with a bitstack; return 0.
+
+    The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
+    :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
+    counters in ``counters[r]``.
+    """
+    _ = scratch
+    box = bvh.inner_box
+    refs = bvh.inner_ref
+    for r in range(begin, end):
+        n_steps = 0
+        n_nodes = 0
+        n_box = 0
+        n_prim = 0
+        n_up = 0
+        n_bytes = 0
+        hist0 = 0
+        hist1 = 0
+        hist2 = 0
+        hist3 = 0
+        (
+            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        best_prim = -1
+        best_u = ZERO32
+        best_v = ZERO32
+        box_lo = t_lo - pad
+        box_hi = t_hit + pad
+        entry = INF32
+        if valid:
+            # The root box is tested once up front.
+            entry = root_entry(
+                bvh.root_box, ox, oy, oz, ix, iy, iz,
+                nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+            )  # fmt: skip
+            if with_stats:
+                n_box += 1
+        node = bvh.root_ref[0]
+        bits = np.int64(0)
+        done = entry == INF32
+        while not done:
+            if with_stats:
+                n_steps += 1
+                n_nodes += 1
+            if node >= 0:
+                # Inner row: test both children; descend into the nearer hit one
+                # and mark the level when the other is pending.
+                c0 = refs[node, 12]
+                c1 = refs[node, 13]
+                if c0 >= 0:
+                    prefetch_row(box, c0)
+                if c1 >= 0:
+                    prefetch_row(box, c1)
+                t0 = box_entry(
+                    box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    box_lo, box_hi,
+                )  # fmt: skip
+                t1 = box_entry(
+                    box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    box_lo, box_hi,
+                )  # fmt: skip
+                if with_stats:
+                    n_box += 2
+                    n_bytes += PACKED_ROW_BYTES
+                if t0 < INF32 or t1 < INF32:
+                    bits <<= 1
+                    if t0 < INF32 and t1 < INF32:
+                        bits |= 1
+                    node = pick(t1 < t0, c1, c0)
+                    continue
+            else:
+                # Leaf: test its triangles, shrinking t_hit.
+                first = bvh.leaf_first[~node]
+                last = first + bvh.leaf_count[~node]
+                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                    query == QUERY_ANY,
+                )  # fmt: skip
+                box_hi = t_hit + pad
+                if with_stats:
+                    n_prim += tested
+                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                if query == QUERY_ANY and best_prim >= 0:
                     break
-                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                    n_steps = 0
-                    n_nodes = 0
-                    n_box = 0
-                    n_prim = 0
-                    n_up = 0
-                    n_bytes = 0
-                    hist0 = 0
-                    hist1 = 0
-                    hist2 = 0
-                    hist3 = 0
-                    (
-                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                    best_prim = -1
-                    best_u = ZERO32
-                    best_v = ZERO32
-                    box_lo = t_lo - pad
-                    box_hi = t_hit + pad
-                    entry = INF32
-                    if valid:
-                        # The root box is tested once up front.
-                        entry = root_entry(
-                            bvh.root_box, ox, oy, oz, ix, iy, iz,
-                            nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                        )  # fmt: skip
-                        if with_stats:
-                            n_box += 1
-                    node = bvh.root_ref[0]
-                    bits = np.int64(0)
-                    done = entry == INF32
-                    while not done:
-                        if with_stats:
-                            n_steps += 1
-                            n_nodes += 1
-                        if node >= 0:
-                            # Inner row: test both children; descend into the nearer hit one
-                            # and mark the level when the other is pending.
-                            c0 = refs[node, 12]
-                            c1 = refs[node, 13]
-                            if c0 >= 0:
-                                prefetch_row(box, c0)
-                            if c1 >= 0:
-                                prefetch_row(box, c1)
-                            t0 = box_entry(
-                                box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                box_lo, box_hi,
-                            )  # fmt: skip
-                            t1 = box_entry(
-                                box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                box_lo, box_hi,
-                            )  # fmt: skip
-                            if with_stats:
-                                n_box += 2
-                                n_bytes += PACKED_ROW_BYTES
-                            if t0 < INF32 or t1 < INF32:
-                                bits <<= 1
-                                if t0 < INF32 and t1 < INF32:
-                                    bits |= 1
-                                node = pick(t1 < t0, c1, c0)
-                                continue
-                        else:
-                            # Leaf: test its triangles, shrinking t_hit.
-                            first = bvh.leaf_first[~node]
-                            last = first + bvh.leaf_count[~node]
-                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                                query == QUERY_ANY,
-                            )  # fmt: skip
-                            box_hi = t_hit + pad
-                            if with_stats:
-                                n_prim += tested
-                                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                            if query == QUERY_ANY and best_prim >= 0:
-                                break
-                        # Backtrack: climb while the level has nothing pending, then go to
-                        # the sibling if its box is still within [tmin, t_hit].
-                        done = True
-                        climbed = 0
-                        while bits != 0:
-                            up = bvh.row_up[node] if node >= 0 else bvh.leaf_up[~node]
-                            if with_stats:
-                                n_bytes += LINK_BYTES
-                            if bits & 1 == 0:
-                                node = up >> 1
-                                bits >>= 1
-                                climbed += 1
-                                if with_stats:
-                                    n_up += 1
-                                continue
-                            bits ^= 1
-                            parent = up >> 1
-                            slot = 1 - (up & 1)
-                            if with_stats:
-                                n_box += 1
-                                n_bytes += PACKED_ROW_BYTES
-                                if climbed == 0:
-                                    hist0 += 1
-                                elif climbed == 1:
-                                    hist1 += 1
-                                elif climbed == 2:
-                                    hist2 += 1
-                                else:
-                                    hist3 += 1
-                            climbed = 0
-                            node = refs[parent, 12 + slot]
-                            t = box_entry(
-                                box, parent, 6 * slot, ox, oy, oz, ix, iy, iz, nx, ny, nz,
-                                fx, fy, fz, box_lo, box_hi,
-                            )  # fmt: skip
-                            if t < INF32:
-                                done = False
-                                break
-                    if best_prim >= 0:
-                        hit_t[r] = t_hit
-                        hit_prim[r] = best_prim
-                        hit_u[r] = best_u
-                        hit_v[r] = best_v
+            # Backtrack: climb while the level has nothing pending, then go to
+            # the sibling if its box is still within [tmin, t_hit].
+            done = True
+            climbed = 0
+            while bits != 0:
+                up = bvh.row_up[node] if node >= 0 else bvh.leaf_up[~node]
+                if with_stats:
+                    n_bytes += LINK_BYTES
+                if bits & 1 == 0:
+                    node = up >> 1
+                    bits >>= 1
+                    climbed += 1
                     if with_stats:
-                        counters[r, Counter.STEPS] = n_steps
-                        counters[r, Counter.NODES] = n_nodes
-                        counters[r, Counter.BOX_TESTS] = n_box
-                        counters[r, Counter.PRIM_TESTS] = n_prim
-                        counters[r, Counter.BACKTRACKS] = n_up
-                        counters[r, Counter.BACKTRACK_SIBLING] = hist0
-                        counters[r, Counter.BACKTRACK_UNCLE] = hist1
-                        counters[r, Counter.BACKTRACK_GRAND_UNCLE] = hist2
-                        counters[r, Counter.BACKTRACK_FURTHER] = hist3
-                        counters[r, Counter.BYTES] = n_bytes
-        return 0
+                        n_up += 1
+                    continue
+                bits ^= 1
+                parent = up >> 1
+                slot = 1 - (up & 1)
+                if with_stats:
+                    n_box += 1
+                    n_bytes += PACKED_ROW_BYTES
+                    if climbed == 0:
+                        hist0 += 1
+                    elif climbed == 1:
+                        hist1 += 1
+                    elif climbed == 2:
+                        hist2 += 1
+                    else:
+                        hist3 += 1
+                climbed = 0
+                node = refs[parent, 12 + slot]
+                t = box_entry(
+                    box, parent, 6 * slot, ox, oy, oz, ix, iy, iz, nx, ny, nz,
+                    fx, fy, fz, box_lo, box_hi,
+                )  # fmt: skip
+                if t < INF32:
+                    done = False
+                    break
+        if with_stats:
+            counters[r, Counter.STEPS] = n_steps
+            counters[r, Counter.NODES] = n_nodes
+            counters[r, Counter.BOX_TESTS] = n_box
+            counters[r, Counter.PRIM_TESTS] = n_prim
+            counters[r, Counter.BACKTRACKS] = n_up
+            counters[r, Counter.BACKTRACK_SIBLING] = hist0
+            counters[r, Counter.BACKTRACK_UNCLE] = hist1
+            counters[r, Counter.BACKTRACK_GRAND_UNCLE] = hist2
+            counters[r, Counter.BACKTRACK_FURTHER] = hist3
+            counters[r, Counter.BYTES] = n_bytes
+        store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
+    return 0
 
-    return kernel
+
+make_scratch = cpu_inline(make_scratch_py)
+trace_rays = cpu_inline(trace_rays_py)
+#: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
+trace_kernel = body_kernels(make_scratch, trace_rays)
 
 
 @register(

@@ -34,16 +34,13 @@ and triangle bytes).
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numba import prange
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
-from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, linked_layout
 from rayaccel.bvh.traverse.building_blocks import INF32, box_entry
@@ -54,8 +51,8 @@ from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
-from rayaccel.trace.run import run_trace
-from rayaccel.trace.skeleton import RAY_CHUNK
+from rayaccel.trace.run import body_kernels, run_trace
+from rayaccel.trace.skeleton import store_hit
 
 ZERO32 = np.float32(0.0)
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
@@ -70,163 +67,160 @@ class ParentLinkOptions:
     """Options of the ``bvh2.parent_link`` traversal (none; kept for a uniform API)."""
 
 
-@functools.cache
-def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
-    """Return the compiled parent-link traversal for one (query, with_stats, parallel) variant."""
+def make_scratch_py(bvh):
+    """Return one worker's scratch: none (a ray's state is its row, slot and machine state)."""
+    return 0
 
-    @cpu_kernel(parallel=parallel)
-    def kernel(
-        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
-    ):
-        """Trace every ray over ``bvh`` (LinkedArrays) with the three-state machine; return 0."""
-        _ = (query, with_stats, parallel)
-        n_rays = origin.shape[0]
-        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
-        box = bvh.inner_box
-        refs = bvh.inner_ref
-        # Workers take chunks of rays from a shared counter (rayaccel._work).
-        counter = new_counter()
-        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
+
+def trace_rays_py(
+    bvh, scratch, origin, direction, tmin, tmax, begin, end,
+    hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+):  # fmt: skip
+    """Trace rays ``begin:end`` over ``bvh`` (LinkedArrays) with the three-state machine; return 0.
+
+    The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
+    :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
+    counters in ``counters[r]``.
+    """
+    _ = scratch
+    box = bvh.inner_box
+    refs = bvh.inner_ref
+    for r in range(begin, end):
+        n_steps = 0
+        n_nodes = 0
+        n_box = 0
+        n_prim = 0
+        n_up = 0
+        n_bytes = 0
+        (
+            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        best_prim = -1
+        best_u = ZERO32
+        best_v = ZERO32
+        box_lo = t_lo - pad
+        box_hi = t_hit + pad
+        root = bvh.root_ref[0]
+        entry = INF32
+        if valid:
+            # The root box is tested once up front.
+            entry = root_entry(
+                bvh.root_box, ox, oy, oz, ix, iy, iz,
+                nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+            )  # fmt: skip
+            if with_stats:
+                n_box += 1
+        if entry < INF32 and root < 0:
+            # A single-leaf tree.
+            first = bvh.leaf_first[~root]
+            last = first + bvh.leaf_count[~root]
+            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, query == QUERY_ANY,
+            )  # fmt: skip
+            if with_stats:
+                n_steps += 1
+                n_nodes += 1
+                n_prim += tested
+                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+        elif entry < INF32:
+            row = root
+            state = DOWN
+            slot = 0
+            near = 0
+            t0 = INF32
+            t1 = INF32
             while True:
-                chunk = next_item(counter, n_chunks)
-                if chunk < 0:
-                    break
-                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                    n_steps = 0
-                    n_nodes = 0
-                    n_box = 0
-                    n_prim = 0
-                    n_up = 0
-                    n_bytes = 0
-                    (
-                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                    best_prim = -1
-                    best_u = ZERO32
-                    best_v = ZERO32
-                    box_lo = t_lo - pad
-                    box_hi = t_hit + pad
-                    root = bvh.root_ref[0]
-                    entry = INF32
-                    if valid:
-                        # The root box is tested once up front.
-                        entry = root_entry(
-                            bvh.root_box, ox, oy, oz, ix, iy, iz,
-                            nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                        )  # fmt: skip
-                        if with_stats:
-                            n_box += 1
-                    if entry < INF32 and root < 0:
-                        # A single-leaf tree.
-                        first = bvh.leaf_first[~root]
-                        last = first + bvh.leaf_count[~root]
-                        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                            bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                            Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, query == QUERY_ANY,
-                        )  # fmt: skip
-                        if with_stats:
-                            n_steps += 1
-                            n_nodes += 1
-                            n_prim += tested
-                            n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                    elif entry < INF32:
-                        row = root
-                        state = DOWN
-                        slot = 0
-                        near = 0
-                        t0 = INF32
-                        t1 = INF32
-                        while True:
-                            if state != TRY:
-                                # At a row (entered from above, or back from a child): the
-                                # children's entry distances give the near child (ties: 0).
-                                t0 = box_entry(
-                                    box, row, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                    box_lo, INF32,
-                                )  # fmt: skip
-                                t1 = box_entry(
-                                    box, row, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                    box_lo, INF32,
-                                )  # fmt: skip
-                                near = 1 if t1 < t0 else 0
-                                if with_stats:
-                                    n_steps += 1
-                                    n_box += 2
-                                    n_bytes += PACKED_ROW_BYTES
-                                    if state == DOWN:
-                                        n_nodes += 1
-                                    else:
-                                        n_up += 1
-                                if state == DOWN:
-                                    # From the parent: try the near child first.
-                                    slot = near
-                                    state = TRY
-                                elif slot == near:
-                                    # From the near child: its sibling is next.
-                                    slot = 1 - near
-                                    state = TRY
-                                else:
-                                    # From the far child: this row is finished, climb.
-                                    if row == root:
-                                        break
-                                    up = bvh.row_up[row]
-                                    row = up >> 1
-                                    slot = up & 1
-                                    if with_stats:
-                                        n_bytes += LINK_BYTES
-                                    continue
-                            # Try child `slot`: enter it if its box is hit within [tmin, t_hit].
-                            t = t0 if slot == 0 else t1
-                            if t < INF32 and t <= box_hi:
-                                child = refs[row, 12 + slot]
-                                if child >= 0:
-                                    row = child
-                                    state = DOWN
-                                    continue
-                                # Leaf: test its triangles, shrinking t_hit.
-                                first = bvh.leaf_first[~child]
-                                last = first + bvh.leaf_count[~child]
-                                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                                    query == QUERY_ANY,
-                                )  # fmt: skip
-                                box_hi = t_hit + pad
-                                if with_stats:
-                                    n_steps += 1
-                                    n_nodes += 1
-                                    n_prim += tested
-                                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                                if query == QUERY_ANY and best_prim >= 0:
-                                    break
-                            # The child is finished: hand over to the sibling, or climb.
-                            if slot == near:
-                                slot = 1 - near
-                            else:
-                                if row == root:
-                                    break
-                                up = bvh.row_up[row]
-                                row = up >> 1
-                                slot = up & 1
-                                state = UP
-                                if with_stats:
-                                    n_bytes += LINK_BYTES
-                    if best_prim >= 0:
-                        hit_t[r] = t_hit
-                        hit_prim[r] = best_prim
-                        hit_u[r] = best_u
-                        hit_v[r] = best_v
+                if state != TRY:
+                    # At a row (entered from above, or back from a child): the
+                    # children's entry distances give the near child (ties: 0).
+                    t0 = box_entry(
+                        box, row, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                        box_lo, INF32,
+                    )  # fmt: skip
+                    t1 = box_entry(
+                        box, row, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                        box_lo, INF32,
+                    )  # fmt: skip
+                    near = 1 if t1 < t0 else 0
                     if with_stats:
-                        counters[r, Counter.STEPS] = n_steps
-                        counters[r, Counter.NODES] = n_nodes
-                        counters[r, Counter.BOX_TESTS] = n_box
-                        counters[r, Counter.PRIM_TESTS] = n_prim
-                        counters[r, Counter.BACKTRACKS] = n_up
-                        counters[r, Counter.BYTES] = n_bytes
-        return 0
+                        n_steps += 1
+                        n_box += 2
+                        n_bytes += PACKED_ROW_BYTES
+                        if state == DOWN:
+                            n_nodes += 1
+                        else:
+                            n_up += 1
+                    if state == DOWN:
+                        # From the parent: try the near child first.
+                        slot = near
+                        state = TRY
+                    elif slot == near:
+                        # From the near child: its sibling is next.
+                        slot = 1 - near
+                        state = TRY
+                    else:
+                        # From the far child: this row is finished, climb.
+                        if row == root:
+                            break
+                        up = bvh.row_up[row]
+                        row = up >> 1
+                        slot = up & 1
+                        if with_stats:
+                            n_bytes += LINK_BYTES
+                        continue
+                # Try child `slot`: enter it if its box is hit within [tmin, t_hit].
+                t = t0 if slot == 0 else t1
+                if t < INF32 and t <= box_hi:
+                    child = refs[row, 12 + slot]
+                    if child >= 0:
+                        row = child
+                        state = DOWN
+                        continue
+                    # Leaf: test its triangles, shrinking t_hit.
+                    first = bvh.leaf_first[~child]
+                    last = first + bvh.leaf_count[~child]
+                    t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                        bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                        Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                        query == QUERY_ANY,
+                    )  # fmt: skip
+                    box_hi = t_hit + pad
+                    if with_stats:
+                        n_steps += 1
+                        n_nodes += 1
+                        n_prim += tested
+                        n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                    if query == QUERY_ANY and best_prim >= 0:
+                        break
+                # The child is finished: hand over to the sibling, or climb.
+                if slot == near:
+                    slot = 1 - near
+                else:
+                    if row == root:
+                        break
+                    up = bvh.row_up[row]
+                    row = up >> 1
+                    slot = up & 1
+                    state = UP
+                    if with_stats:
+                        n_bytes += LINK_BYTES
+        if with_stats:
+            counters[r, Counter.STEPS] = n_steps
+            counters[r, Counter.NODES] = n_nodes
+            counters[r, Counter.BOX_TESTS] = n_box
+            counters[r, Counter.PRIM_TESTS] = n_prim
+            counters[r, Counter.BACKTRACKS] = n_up
+            counters[r, Counter.BYTES] = n_bytes
+        store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
+    return 0
 
-    return kernel
+
+make_scratch = cpu_inline(make_scratch_py)
+trace_rays = cpu_inline(trace_rays_py)
+#: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
+trace_kernel = body_kernels(make_scratch, trace_rays)
 
 
 @register(

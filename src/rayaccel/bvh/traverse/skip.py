@@ -27,16 +27,13 @@ per triangle and reference); ``stack_peak`` and the backtracking counters are 0.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numba import prange
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
-from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import LEAF_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.layouts.stackless_links import SKIP_ROW_BYTES, skip_layout
 from rayaccel.bvh.traverse.building_blocks import INF32, box_entry
@@ -47,8 +44,8 @@ from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.ray_setup import ray_prologue
-from rayaccel.trace.run import run_trace
-from rayaccel.trace.skeleton import RAY_CHUNK
+from rayaccel.trace.run import body_kernels, run_trace
+from rayaccel.trace.skeleton import store_hit
 
 ZERO32 = np.float32(0.0)
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
@@ -59,88 +56,85 @@ class SkipOptions:
     """Options of the ``bvh2.skip`` traversal (none; kept for a uniform API)."""
 
 
-@functools.cache
-def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
-    """Return the compiled skip-pointer traversal for one (query, with_stats, parallel) variant."""
+def make_scratch_py(bvh):
+    """Return one worker's scratch: none (the walk keeps only an index per ray)."""
+    return 0
 
-    @cpu_kernel(parallel=parallel)
-    def kernel(
-        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
-    ):
-        """Walk the pre-order rows of ``bvh`` (SkipArrays) for every ray; return 0."""
-        _ = (query, with_stats, parallel)
-        n_rays = origin.shape[0]
-        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
-        rows = bvh.node_row
-        ints = bvh.node_int
-        n_nodes = rows.shape[0]
-        # Workers take chunks of rays from a shared counter (rayaccel._work).
-        counter = new_counter()
-        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
-            while True:
-                chunk = next_item(counter, n_chunks)
-                if chunk < 0:
+
+def trace_rays_py(
+    bvh, scratch, origin, direction, tmin, tmax, begin, end,
+    hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+):  # fmt: skip
+    """Walk the pre-order rows of ``bvh`` (SkipArrays) for rays ``begin:end``; return 0.
+
+    The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
+    :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
+    counters in ``counters[r]``.
+    """
+    _ = scratch
+    rows = bvh.node_row
+    ints = bvh.node_int
+    n_nodes = rows.shape[0]
+    for r in range(begin, end):
+        n_steps = 0
+        n_visited = 0
+        n_prim = 0
+        n_bytes = 0
+        (
+            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        best_prim = -1
+        best_u = ZERO32
+        best_v = ZERO32
+        box_lo = t_lo - pad
+        box_hi = t_hit + pad
+        node = 0 if valid else n_nodes
+        while node < n_nodes:
+            # Test this row's box: a hit steps into the subtree, a miss skips it.
+            entry = box_entry(
+                rows, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                box_lo, box_hi,
+            )  # fmt: skip
+            if with_stats:
+                n_steps += 1
+                n_bytes += SKIP_ROW_BYTES
+            if entry == INF32:
+                node = ints[node, 6]
+                continue
+            if with_stats:
+                n_visited += 1
+            leaf = ints[node, 7]
+            if leaf >= 0:
+                # Leaf: test its triangles, shrinking t_hit, then go on after it.
+                first = bvh.leaf_first[leaf]
+                last = first + bvh.leaf_count[leaf]
+                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                    query == QUERY_ANY,
+                )  # fmt: skip
+                box_hi = t_hit + pad
+                if with_stats:
+                    n_prim += tested
+                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                if query == QUERY_ANY and best_prim >= 0:
                     break
-                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                    n_steps = 0
-                    n_visited = 0
-                    n_prim = 0
-                    n_bytes = 0
-                    (
-                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                    best_prim = -1
-                    best_u = ZERO32
-                    best_v = ZERO32
-                    box_lo = t_lo - pad
-                    box_hi = t_hit + pad
-                    node = 0 if valid else n_nodes
-                    while node < n_nodes:
-                        # Test this row's box: a hit steps into the subtree, a miss skips it.
-                        entry = box_entry(
-                            rows, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                            box_lo, box_hi,
-                        )  # fmt: skip
-                        if with_stats:
-                            n_steps += 1
-                            n_bytes += SKIP_ROW_BYTES
-                        if entry == INF32:
-                            node = ints[node, 6]
-                            continue
-                        if with_stats:
-                            n_visited += 1
-                        leaf = ints[node, 7]
-                        if leaf >= 0:
-                            # Leaf: test its triangles, shrinking t_hit, then go on after it.
-                            first = bvh.leaf_first[leaf]
-                            last = first + bvh.leaf_count[leaf]
-                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                                query == QUERY_ANY,
-                            )  # fmt: skip
-                            box_hi = t_hit + pad
-                            if with_stats:
-                                n_prim += tested
-                                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                            if query == QUERY_ANY and best_prim >= 0:
-                                break
-                        node += 1
-                    if best_prim >= 0:
-                        hit_t[r] = t_hit
-                        hit_prim[r] = best_prim
-                        hit_u[r] = best_u
-                        hit_v[r] = best_v
-                    if with_stats:
-                        counters[r, Counter.STEPS] = n_steps
-                        counters[r, Counter.NODES] = n_visited
-                        counters[r, Counter.BOX_TESTS] = n_steps
-                        counters[r, Counter.PRIM_TESTS] = n_prim
-                        counters[r, Counter.BYTES] = n_bytes
-        return 0
+            node += 1
+        if with_stats:
+            counters[r, Counter.STEPS] = n_steps
+            counters[r, Counter.NODES] = n_visited
+            counters[r, Counter.BOX_TESTS] = n_steps
+            counters[r, Counter.PRIM_TESTS] = n_prim
+            counters[r, Counter.BYTES] = n_bytes
+        store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
+    return 0
 
-    return kernel
+
+make_scratch = cpu_inline(make_scratch_py)
+trace_rays = cpu_inline(trace_rays_py)
+#: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
+trace_kernel = body_kernels(make_scratch, trace_rays)
 
 
 @register(
