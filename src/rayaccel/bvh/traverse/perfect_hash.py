@@ -44,7 +44,6 @@ Counters: ``steps``/``nodes`` nodes entered (equals ``bvh2.stack``), ``box_tests
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
 
@@ -52,9 +51,8 @@ import numpy as np
 from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
-from rayaccel._jit import cpu_kernel, prefetch_row
+from rayaccel._jit import cpu_inline, cpu_kernel, prefetch_row
 from rayaccel._variant import register, register_pausable
-from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import (
     CACHE_LINE,
     LEAF_BYTES,
@@ -84,8 +82,8 @@ from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
-from rayaccel.trace.run import memoised_layout, run_trace
-from rayaccel.trace.skeleton import RAY_CHUNK
+from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
+from rayaccel.trace.skeleton import store_hit
 
 ZERO32 = np.float32(0.0)
 TWO32 = np.float32(2.0)
@@ -234,220 +232,217 @@ def keyed_layout(packed: PackedBvh2, cache: dict[str, Any] | None) -> KeyedBvh2:
     return memoised_layout(cache, "bvh2.keyed", lambda: key_packed(packed))
 
 
-@functools.cache
-def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
-    """Return the compiled constant-time traversal for one (query, with_stats, parallel) variant."""
+def make_scratch_py(bvh):
+    """Return one worker's scratch: none (a ray's state is its node, key, trail and register)."""
+    return 0
 
-    @cpu_kernel(parallel=parallel)
-    def kernel(
-        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
-    ):
-        """Trace every ray over ``bvh`` (KeyedArrays) with keys, trail and hash; return 0."""
-        _ = (query, with_stats, parallel)
-        n_rays = origin.shape[0]
-        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
-        box = bvh.inner_box
-        refs = bvh.inner_ref
-        table = bvh.hash_table
-        disp = bvh.hash_disp
-        n_table = np.int64(table.shape[0])
-        disp_mask = np.int64(disp.shape[0] - 1)
-        use_hash = (bvh.switches & USE_HASH) != 0
-        use_uncles = (bvh.switches & USE_UNCLES) != 0
-        use_register = (bvh.switches & USE_REGISTER) != 0
-        use_mask = (bvh.switches & USE_LEVEL_MASK) != 0
-        # Workers take chunks of rays from a shared counter (rayaccel._work).
-        counter = new_counter()
-        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
-            while True:
-                chunk = next_item(counter, n_chunks)
-                if chunk < 0:
+
+def trace_rays_py(
+    bvh, scratch, origin, direction, tmin, tmax, begin, end,
+    hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+):  # fmt: skip
+    """Trace rays ``begin:end`` over ``bvh`` (KeyedArrays) with keys, trail and hash; return 0.
+
+    The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
+    :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
+    counters in ``counters[r]``.
+    """
+    _ = scratch
+    box = bvh.inner_box
+    refs = bvh.inner_ref
+    table = bvh.hash_table
+    disp = bvh.hash_disp
+    n_table = np.int64(table.shape[0])
+    disp_mask = np.int64(disp.shape[0] - 1)
+    use_hash = (bvh.switches & USE_HASH) != 0
+    use_uncles = (bvh.switches & USE_UNCLES) != 0
+    use_register = (bvh.switches & USE_REGISTER) != 0
+    use_mask = (bvh.switches & USE_LEVEL_MASK) != 0
+    for r in range(begin, end):
+        n_steps = 0
+        n_box = 0
+        n_prim = 0
+        n_bytes = 0
+        n_back = 0
+        n_lookups = 0
+        hist0 = 0
+        hist1 = 0
+        hist2 = 0
+        hist3 = 0
+        (
+            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        best_prim = -1
+        best_u = ZERO32
+        best_v = ZERO32
+        box_lo = t_lo - pad
+        box_hi = t_hit + pad
+        margin = TWO32 * pad
+        entry = INF32
+        if valid:
+            # The root box is tested once up front.
+            entry = root_entry(
+                bvh.root_box, ox, oy, oz, ix, iy, iz,
+                nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+            )  # fmt: skip
+            if with_stats:
+                n_box += 1
+        node = bvh.root_ref[0]
+        prow = -1
+        key = np.int64(1)
+        trail = np.int64(0)
+        mask = np.int64(0)
+        reg_pos = -1
+        reg_ref = 0
+        reg_row = 0
+        reg_t = INF32
+        done = entry == INF32
+        while not done:
+            if with_stats:
+                n_steps += 1
+            if node >= 0:
+                # Inner row: test both children, descend into the nearer hit one.
+                c0 = refs[node, 12]
+                c1 = refs[node, 13]
+                if c0 >= 0:
+                    prefetch_row(box, c0)
+                if c1 >= 0:
+                    prefetch_row(box, c1)
+                t0 = box_entry(
+                    box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    box_lo, box_hi,
+                )  # fmt: skip
+                t1 = box_entry(
+                    box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    box_lo, box_hi,
+                )  # fmt: skip
+                if with_stats:
+                    n_box += 2
+                    n_bytes += PACKED_ROW_BYTES
+                if t0 < INF32 or t1 < INF32:
+                    swap = t1 < t0
+                    trail <<= 1
+                    mask <<= 1
+                    if reg_pos >= 0:
+                        reg_pos += 1
+                    if t0 < INF32 and t1 < INF32:
+                        # Postpone the far child: trail bit, register, level mask.
+                        trail |= 1
+                        t_far = t0 if swap else t1
+                        if use_register:
+                            reg_ref = c0 if swap else c1
+                            reg_row = node
+                            reg_t = t_far
+                            reg_pos = 0
+                        if use_mask:
+                            t_out = box_exit(
+                                box, node, 6 if swap else 0, ox, oy, oz, ix, iy, iz,
+                                fx, fy, fz,
+                            )  # fmt: skip
+                            if t_far <= t_out + margin:
+                                mask |= 1
+                    key = 2 * key + (1 if swap else 0)
+                    prow = node
+                    node = pick(swap, c1, c0)
+                    continue
+            else:
+                # Leaf: test its triangles; a hit drops unreachable postponed nodes.
+                first = bvh.leaf_first[~node]
+                last = first + bvh.leaf_count[~node]
+                t_before = t_hit
+                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                    query == QUERY_ANY,
+                )  # fmt: skip
+                box_hi = t_hit + pad
+                if with_stats:
+                    n_prim += tested
+                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                if query == QUERY_ANY and best_prim >= 0:
                     break
-                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                    n_steps = 0
-                    n_box = 0
-                    n_prim = 0
-                    n_bytes = 0
-                    n_back = 0
-                    n_lookups = 0
-                    hist0 = 0
-                    hist1 = 0
-                    hist2 = 0
-                    hist3 = 0
-                    (
-                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                    best_prim = -1
-                    best_u = ZERO32
-                    best_v = ZERO32
-                    box_lo = t_lo - pad
-                    box_hi = t_hit + pad
-                    margin = TWO32 * pad
-                    entry = INF32
-                    if valid:
-                        # The root box is tested once up front.
-                        entry = root_entry(
-                            bvh.root_box, ox, oy, oz, ix, iy, iz,
-                            nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                        )  # fmt: skip
+                if use_mask and t_hit < t_before:
+                    trail &= mask
+            # Backtrack to the deepest postponed node, n levels up, in O(1).
+            done = True
+            while trail != 0:
+                n = trailing_zeros(trail)
+                key = (key >> n) ^ 1
+                trail = (trail >> n) ^ 1
+                mask >>= n
+                slot = key & 1
+                if with_stats:
+                    n_back += 1
+                    if n == 0:
+                        hist0 += 1
+                    elif n == 1:
+                        hist1 += 1
+                    elif n == 2:
+                        hist2 += 1
+                    else:
+                        hist3 += 1
+                if reg_pos == n:
+                    # The register holds it (always the case for a sibling).
+                    node = reg_ref
+                    prow = reg_row
+                    t = reg_t if reg_t <= box_hi else INF32
+                else:
+                    # Find the row holding the target: the current parent row, the
+                    # spare room's uncle/grand-uncle rows, or one hash lookup.
+                    if n == 0:
+                        row = prow
+                    elif n == 1 and use_uncles:
+                        row = refs[prow, 14]
+                    elif n == 2 and use_uncles:
+                        row = refs[prow, 15]
+                    elif use_hash:
+                        k = key >> 1
+                        row = table[(k % n_table + disp[k & disp_mask]) % n_table]
                         if with_stats:
-                            n_box += 1
-                    node = bvh.root_ref[0]
-                    prow = -1
-                    key = np.int64(1)
-                    trail = np.int64(0)
-                    mask = np.int64(0)
-                    reg_pos = -1
-                    reg_ref = 0
-                    reg_row = 0
-                    reg_t = INF32
-                    done = entry == INF32
-                    while not done:
+                            n_lookups += 1
+                            n_bytes += 2 * ENTRY_BYTES
+                    else:
+                        row = prow
+                        for _ in range(n):
+                            row = refs[row, 14]
                         if with_stats:
-                            n_steps += 1
-                        if node >= 0:
-                            # Inner row: test both children, descend into the nearer hit one.
-                            c0 = refs[node, 12]
-                            c1 = refs[node, 13]
-                            if c0 >= 0:
-                                prefetch_row(box, c0)
-                            if c1 >= 0:
-                                prefetch_row(box, c1)
-                            t0 = box_entry(
-                                box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                box_lo, box_hi,
-                            )  # fmt: skip
-                            t1 = box_entry(
-                                box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                box_lo, box_hi,
-                            )  # fmt: skip
-                            if with_stats:
-                                n_box += 2
-                                n_bytes += PACKED_ROW_BYTES
-                            if t0 < INF32 or t1 < INF32:
-                                swap = t1 < t0
-                                trail <<= 1
-                                mask <<= 1
-                                if reg_pos >= 0:
-                                    reg_pos += 1
-                                if t0 < INF32 and t1 < INF32:
-                                    # Postpone the far child: trail bit, register, level mask.
-                                    trail |= 1
-                                    t_far = t0 if swap else t1
-                                    if use_register:
-                                        reg_ref = c0 if swap else c1
-                                        reg_row = node
-                                        reg_t = t_far
-                                        reg_pos = 0
-                                    if use_mask:
-                                        t_out = box_exit(
-                                            box, node, 6 if swap else 0, ox, oy, oz, ix, iy, iz,
-                                            fx, fy, fz,
-                                        )  # fmt: skip
-                                        if t_far <= t_out + margin:
-                                            mask |= 1
-                                key = 2 * key + (1 if swap else 0)
-                                prow = node
-                                node = pick(swap, c1, c0)
-                                continue
-                        else:
-                            # Leaf: test its triangles; a hit drops unreachable postponed nodes.
-                            first = bvh.leaf_first[~node]
-                            last = first + bvh.leaf_count[~node]
-                            t_before = t_hit
-                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                                query == QUERY_ANY,
-                            )  # fmt: skip
-                            box_hi = t_hit + pad
-                            if with_stats:
-                                n_prim += tested
-                                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                            if query == QUERY_ANY and best_prim >= 0:
-                                break
-                            if use_mask and t_hit < t_before:
-                                trail &= mask
-                        # Backtrack to the deepest postponed node, n levels up, in O(1).
-                        done = True
-                        while trail != 0:
-                            n = trailing_zeros(trail)
-                            key = (key >> n) ^ 1
-                            trail = (trail >> n) ^ 1
-                            mask >>= n
-                            slot = key & 1
-                            if with_stats:
-                                n_back += 1
-                                if n == 0:
-                                    hist0 += 1
-                                elif n == 1:
-                                    hist1 += 1
-                                elif n == 2:
-                                    hist2 += 1
-                                else:
-                                    hist3 += 1
-                            if reg_pos == n:
-                                # The register holds it (always the case for a sibling).
-                                node = reg_ref
-                                prow = reg_row
-                                t = reg_t if reg_t <= box_hi else INF32
-                            else:
-                                # Find the row holding the target: the current parent row, the
-                                # spare room's uncle/grand-uncle rows, or one hash lookup.
-                                if n == 0:
-                                    row = prow
-                                elif n == 1 and use_uncles:
-                                    row = refs[prow, 14]
-                                elif n == 2 and use_uncles:
-                                    row = refs[prow, 15]
-                                elif use_hash:
-                                    k = key >> 1
-                                    row = table[(k % n_table + disp[k & disp_mask]) % n_table]
-                                    if with_stats:
-                                        n_lookups += 1
-                                        n_bytes += 2 * ENTRY_BYTES
-                                else:
-                                    row = prow
-                                    for _ in range(n):
-                                        row = refs[row, 14]
-                                    if with_stats:
-                                        n_back += n
-                                        n_bytes += LINK_BYTES * n
-                                node = refs[row, 12 + slot]
-                                prow = row
-                                # Re-check the postponed node against the current t_hit.
-                                t = box_entry(
-                                    box, row, 6 * slot, ox, oy, oz, ix, iy, iz, nx, ny, nz,
-                                    fx, fy, fz, box_lo, box_hi,
-                                )  # fmt: skip
-                                if with_stats:
-                                    n_box += 1
-                                    n_bytes += PACKED_ROW_BYTES
-                            reg_pos = -1
-                            if t < INF32:
-                                done = False
-                                break
-                    if best_prim >= 0:
-                        hit_t[r] = t_hit
-                        hit_prim[r] = best_prim
-                        hit_u[r] = best_u
-                        hit_v[r] = best_v
+                            n_back += n
+                            n_bytes += LINK_BYTES * n
+                    node = refs[row, 12 + slot]
+                    prow = row
+                    # Re-check the postponed node against the current t_hit.
+                    t = box_entry(
+                        box, row, 6 * slot, ox, oy, oz, ix, iy, iz, nx, ny, nz,
+                        fx, fy, fz, box_lo, box_hi,
+                    )  # fmt: skip
                     if with_stats:
-                        counters[r, Counter.STEPS] = n_steps
-                        counters[r, Counter.NODES] = n_steps
-                        counters[r, Counter.BOX_TESTS] = n_box
-                        counters[r, Counter.PRIM_TESTS] = n_prim
-                        counters[r, Counter.BACKTRACKS] = n_back
-                        counters[r, Counter.HASH_LOOKUPS] = n_lookups
-                        counters[r, Counter.BACKTRACK_SIBLING] = hist0
-                        counters[r, Counter.BACKTRACK_UNCLE] = hist1
-                        counters[r, Counter.BACKTRACK_GRAND_UNCLE] = hist2
-                        counters[r, Counter.BACKTRACK_FURTHER] = hist3
-                        counters[r, Counter.BYTES] = n_bytes
-        return 0
+                        n_box += 1
+                        n_bytes += PACKED_ROW_BYTES
+                reg_pos = -1
+                if t < INF32:
+                    done = False
+                    break
+        if with_stats:
+            counters[r, Counter.STEPS] = n_steps
+            counters[r, Counter.NODES] = n_steps
+            counters[r, Counter.BOX_TESTS] = n_box
+            counters[r, Counter.PRIM_TESTS] = n_prim
+            counters[r, Counter.BACKTRACKS] = n_back
+            counters[r, Counter.HASH_LOOKUPS] = n_lookups
+            counters[r, Counter.BACKTRACK_SIBLING] = hist0
+            counters[r, Counter.BACKTRACK_UNCLE] = hist1
+            counters[r, Counter.BACKTRACK_GRAND_UNCLE] = hist2
+            counters[r, Counter.BACKTRACK_FURTHER] = hist3
+            counters[r, Counter.BYTES] = n_bytes
+        store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
+    return 0
 
-    return kernel
+
+make_scratch = cpu_inline(make_scratch_py)
+trace_rays = cpu_inline(trace_rays_py)
+#: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
+trace_kernel = body_kernels(make_scratch, trace_rays)
 
 
 @register(

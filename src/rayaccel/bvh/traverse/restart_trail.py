@@ -35,17 +35,14 @@ overvisit is ``nodes`` over ``bvh2.stack``'s), ``box_tests``, ``prim_tests``,
 
 from __future__ import annotations
 
-import functools
 import operator
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import prange
 
-from rayaccel._jit import cpu_kernel, prefetch_row
+from rayaccel._jit import cpu_inline, prefetch_row
 from rayaccel._variant import register
-from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import (
     LEAF_BYTES,
     PACKED_ROW_BYTES,
@@ -65,8 +62,8 @@ from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
-from rayaccel.trace.run import run_trace
-from rayaccel.trace.skeleton import RAY_CHUNK
+from rayaccel.trace.run import body_kernels, run_trace
+from rayaccel.trace.skeleton import store_hit
 
 ZERO32 = np.float32(0.0)
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
@@ -112,179 +109,177 @@ class RestartArrays(NamedTuple):
     short_stack: int
 
 
-@functools.cache
-def trace_kernel(query: int, with_stats: bool, parallel: bool) -> Any:
-    """Return the compiled restart-trail traversal for one (query, with_stats, parallel) variant."""
+def make_scratch_py(bvh):
+    """Return one worker's short stack: far child, entry distance and level (one entry at least)."""
+    cap = bvh.short_stack
+    ss_ref = np.empty(max(cap, 1), dtype=np.int32)
+    ss_t = np.empty(max(cap, 1), dtype=np.float32)
+    ss_level = np.empty(max(cap, 1), dtype=np.int64)
+    return ss_ref, ss_t, ss_level
 
-    @cpu_kernel(parallel=parallel)
-    def kernel(
-        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
-    ):
-        """Trace every ray over ``bvh`` (RestartArrays) with a restart trail; return 0."""
-        _ = (query, with_stats, parallel)
-        cap = bvh.short_stack
-        n_rays = origin.shape[0]
-        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
-        box = bvh.inner_box
-        refs = bvh.inner_ref
-        # Workers take chunks of rays from a shared counter (rayaccel._work).
-        counter = new_counter()
-        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
-            ss_ref = np.empty(max(cap, 1), dtype=np.int32)
-            ss_t = np.empty(max(cap, 1), dtype=np.float32)
-            ss_level = np.empty(max(cap, 1), dtype=np.int64)
-            while True:
-                chunk = next_item(counter, n_chunks)
-                if chunk < 0:
-                    break
-                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                    n_steps = 0
-                    n_box = 0
-                    n_prim = 0
-                    n_bytes = 0
-                    n_restarts = 0
-                    n_pops = 0
-                    peak = 0
-                    (
-                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                    best_prim = -1
-                    best_u = ZERO32
-                    best_v = ZERO32
-                    box_lo = t_lo - pad
-                    box_hi = t_hit + pad
-                    entry = INF32
-                    if valid:
-                        # The root box is tested once up front.
-                        entry = root_entry(
-                            bvh.root_box, ox, oy, oz, ix, iy, iz,
-                            nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                        )  # fmt: skip
-                        if with_stats:
-                            n_box += 1
-                    node = bvh.root_ref[0]
-                    trail = np.int64(0)
-                    level = ROOT_LEVEL
-                    pop_level = np.int64(0)
-                    ss_n = 0
-                    ss_top = 0
-                    done = entry == INF32
-                    while not done:
-                        if with_stats:
-                            n_steps += 1
-                        pop = True
-                        if node >= 0:
-                            # Inner row: test both children from the 64-byte row.
-                            c0 = refs[node, 12]
-                            c1 = refs[node, 13]
-                            if c0 >= 0:
-                                prefetch_row(box, c0)
-                            if c1 >= 0:
-                                prefetch_row(box, c1)
-                            t0 = box_entry(
-                                box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                box_lo, box_hi,
-                            )  # fmt: skip
-                            t1 = box_entry(
-                                box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                                box_lo, box_hi,
-                            )  # fmt: skip
-                            if with_stats:
-                                n_box += 2
-                                n_bytes += PACKED_ROW_BYTES
-                            if t0 < INF32 or t1 < INF32:
-                                level >>= 1
-                                swap = t1 < t0
-                                near = c1 if swap else c0
-                                if t0 < INF32 and t1 < INF32:
-                                    # Two children: the trail bit picks near (0) or far (1).
-                                    pop = False
-                                    if trail & level:
-                                        node = pick(swap, c0, c1)
-                                    else:
-                                        node = pick(swap, c1, c0)
-                                        if cap > 0:
-                                            # Remember the far child; overflow drops the oldest.
-                                            ss_ref[ss_top] = c0 if swap else c1
-                                            ss_t[ss_top] = t0 if swap else t1
-                                            ss_level[ss_top] = level
-                                            ss_top = ss_top + 1 if ss_top + 1 < cap else 0
-                                            ss_n = min(ss_n + 1, cap)
-                                            if with_stats:
-                                                n_bytes += STACK_ENTRY_BYTES
-                                                peak = max(peak, ss_n)
-                                elif level != pop_level:
-                                    # One child: mark the level finished on the way down.
-                                    pop = False
-                                    trail |= level
-                                    node = near
-                                # Else the far child of the level just popped is culled now
-                                # (the ray got shorter): pop instead of re-entering the near.
+
+def trace_rays_py(
+    bvh, scratch, origin, direction, tmin, tmax, begin, end,
+    hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+):  # fmt: skip
+    """Trace rays ``begin:end`` over ``bvh`` (RestartArrays) with a restart trail; return 0.
+
+    The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
+    :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
+    counters in ``counters[r]``.
+    """
+    ss_ref, ss_t, ss_level = scratch
+    cap = bvh.short_stack
+    box = bvh.inner_box
+    refs = bvh.inner_ref
+    for r in range(begin, end):
+        n_steps = 0
+        n_box = 0
+        n_prim = 0
+        n_bytes = 0
+        n_restarts = 0
+        n_pops = 0
+        peak = 0
+        (
+            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        best_prim = -1
+        best_u = ZERO32
+        best_v = ZERO32
+        box_lo = t_lo - pad
+        box_hi = t_hit + pad
+        entry = INF32
+        if valid:
+            # The root box is tested once up front.
+            entry = root_entry(
+                bvh.root_box, ox, oy, oz, ix, iy, iz,
+                nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+            )  # fmt: skip
+            if with_stats:
+                n_box += 1
+        node = bvh.root_ref[0]
+        trail = np.int64(0)
+        level = ROOT_LEVEL
+        pop_level = np.int64(0)
+        ss_n = 0
+        ss_top = 0
+        done = entry == INF32
+        while not done:
+            if with_stats:
+                n_steps += 1
+            pop = True
+            if node >= 0:
+                # Inner row: test both children from the 64-byte row.
+                c0 = refs[node, 12]
+                c1 = refs[node, 13]
+                if c0 >= 0:
+                    prefetch_row(box, c0)
+                if c1 >= 0:
+                    prefetch_row(box, c1)
+                t0 = box_entry(
+                    box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    box_lo, box_hi,
+                )  # fmt: skip
+                t1 = box_entry(
+                    box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    box_lo, box_hi,
+                )  # fmt: skip
+                if with_stats:
+                    n_box += 2
+                    n_bytes += PACKED_ROW_BYTES
+                if t0 < INF32 or t1 < INF32:
+                    level >>= 1
+                    swap = t1 < t0
+                    near = c1 if swap else c0
+                    if t0 < INF32 and t1 < INF32:
+                        # Two children: the trail bit picks near (0) or far (1).
+                        pop = False
+                        if trail & level:
+                            node = pick(swap, c0, c1)
                         else:
-                            # Leaf: test its triangles, shrinking t_hit.
-                            first = bvh.leaf_first[~node]
-                            last = first + bvh.leaf_count[~node]
-                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                                query == QUERY_ANY,
-                            )  # fmt: skip
-                            box_hi = t_hit + pad
-                            if with_stats:
-                                n_prim += tested
-                                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
-                            if query == QUERY_ANY and best_prim >= 0:
-                                break
-                        if not pop:
-                            continue
-                        # Pop: advance the trail to the deepest unfinished level; continue from
-                        # the short stack if it has that level's far child, else restart.
-                        while True:
-                            if with_stats:
-                                n_pops += 1
-                            trail &= -level
-                            trail += level
-                            if trail & ROOT_LEVEL:
-                                done = True
-                                break
-                            level = trail & -trail
-                            pop_level = level
-                            if ss_n > 0:
-                                ss_top = ss_top - 1 if ss_top > 0 else cap - 1
-                                ss_n -= 1
+                            node = pick(swap, c1, c0)
+                            if cap > 0:
+                                # Remember the far child; overflow drops the oldest.
+                                ss_ref[ss_top] = c0 if swap else c1
+                                ss_t[ss_top] = t0 if swap else t1
+                                ss_level[ss_top] = level
+                                ss_top = ss_top + 1 if ss_top + 1 < cap else 0
+                                ss_n = min(ss_n + 1, cap)
                                 if with_stats:
                                     n_bytes += STACK_ENTRY_BYTES
-                                if ss_level[ss_top] == level:
-                                    if ss_t[ss_top] > box_hi:
-                                        # Culled by a nearer hit: that level is finished too.
-                                        continue
-                                    node = ss_ref[ss_top]
-                                    break
-                                ss_n = 0
-                            # Restart from the root, following the trail.
-                            node = bvh.root_ref[0]
-                            level = ROOT_LEVEL
-                            if with_stats:
-                                n_restarts += 1
-                            break
-                    if best_prim >= 0:
-                        hit_t[r] = t_hit
-                        hit_prim[r] = best_prim
-                        hit_u[r] = best_u
-                        hit_v[r] = best_v
+                                    peak = max(peak, ss_n)
+                    elif level != pop_level:
+                        # One child: mark the level finished on the way down.
+                        pop = False
+                        trail |= level
+                        node = near
+                    # Else the far child of the level just popped is culled now
+                    # (the ray got shorter): pop instead of re-entering the near.
+            else:
+                # Leaf: test its triangles, shrinking t_hit.
+                first = bvh.leaf_first[~node]
+                last = first + bvh.leaf_count[~node]
+                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                    query == QUERY_ANY,
+                )  # fmt: skip
+                box_hi = t_hit + pad
+                if with_stats:
+                    n_prim += tested
+                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+                if query == QUERY_ANY and best_prim >= 0:
+                    break
+            if not pop:
+                continue
+            # Pop: advance the trail to the deepest unfinished level; continue from
+            # the short stack if it has that level's far child, else restart.
+            while True:
+                if with_stats:
+                    n_pops += 1
+                trail &= -level
+                trail += level
+                if trail & ROOT_LEVEL:
+                    done = True
+                    break
+                level = trail & -trail
+                pop_level = level
+                if ss_n > 0:
+                    ss_top = ss_top - 1 if ss_top > 0 else cap - 1
+                    ss_n -= 1
                     if with_stats:
-                        counters[r, Counter.STEPS] = n_steps
-                        counters[r, Counter.NODES] = n_steps
-                        counters[r, Counter.BOX_TESTS] = n_box
-                        counters[r, Counter.PRIM_TESTS] = n_prim
-                        counters[r, Counter.STACK_PEAK] = peak
-                        counters[r, Counter.RESTARTS] = n_restarts
-                        counters[r, Counter.BACKTRACKS] = n_pops
-                        counters[r, Counter.BYTES] = n_bytes
-        return 0
+                        n_bytes += STACK_ENTRY_BYTES
+                    if ss_level[ss_top] == level:
+                        if ss_t[ss_top] > box_hi:
+                            # Culled by a nearer hit: that level is finished too.
+                            continue
+                        node = ss_ref[ss_top]
+                        break
+                    ss_n = 0
+                # Restart from the root, following the trail.
+                node = bvh.root_ref[0]
+                level = ROOT_LEVEL
+                if with_stats:
+                    n_restarts += 1
+                break
+        if with_stats:
+            counters[r, Counter.STEPS] = n_steps
+            counters[r, Counter.NODES] = n_steps
+            counters[r, Counter.BOX_TESTS] = n_box
+            counters[r, Counter.PRIM_TESTS] = n_prim
+            counters[r, Counter.STACK_PEAK] = peak
+            counters[r, Counter.RESTARTS] = n_restarts
+            counters[r, Counter.BACKTRACKS] = n_pops
+            counters[r, Counter.BYTES] = n_bytes
+        store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
+    return 0
 
-    return kernel
+
+make_scratch = cpu_inline(make_scratch_py)
+trace_rays = cpu_inline(trace_rays_py)
+#: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
+trace_kernel = body_kernels(make_scratch, trace_rays)
 
 
 @register(

@@ -32,12 +32,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
-from rayaccel._jit import cpu_kernel, keep_branch, prefetch_row
+from rayaccel._jit import cpu_inline, keep_branch, prefetch_row
 from rayaccel._variant import register
-from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import (
     LEAF_BYTES,
     MAX_DEPTH,
@@ -63,8 +61,8 @@ from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
-from rayaccel.trace.run import memoised_layout, run_trace
-from rayaccel.trace.skeleton import RAY_CHUNK
+from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
+from rayaccel.trace.skeleton import store_hit
 
 INF32 = np.float32(np.inf)
 ZERO32 = np.float32(0.0)
@@ -90,188 +88,192 @@ class WideOptions:
 
 
 @functools.cache
-def trace_kernel(query: int, with_stats: bool, parallel: bool, width: int = 8) -> Any:
-    """Return the compiled wide traversal for one (query, with_stats, parallel, width)."""
+def wide_body(width: int) -> tuple[Any, Any]:
+    """Return the ``(make_scratch, trace_rays)`` inline pair of the ``width``-wide traversal.
+
+    ``width`` and the columns and sizes it fixes are compile-time constants of the body
+    (:mod:`rayaccel.trace.skeleton`).
+    """
     ref_col = ref_column(width)
     count_col = count_column(width)
     row_bytes = 4 * row_floats(width)
     # Stack entries: a row pushes at most width - 1, a path crosses at most MAX_DEPTH rows.
     stack_size = (width - 1) * MAX_DEPTH + 1
 
-    @cpu_kernel(parallel=parallel)
-    def kernel(
-        bvh, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
-    ):
-        """Trace ``origin/direction (n, 3)`` over ``bvh`` (WideArrays); write hits and counters.
+    def make_scratch_py(bvh):
+        """Return one worker's stack (reference, entry distance) and lane distances."""
+        stack_ref = np.empty(stack_size, dtype=np.int32)
+        stack_t = np.empty(stack_size, dtype=np.float32)
+        lane_t = np.empty(width, dtype=np.float32)
+        return stack_ref, stack_t, lane_t
 
-        Returns the number of rays whose stack would have overflowed (0 for trees within
-        ``MAX_DEPTH``).
+    def trace_rays_py(
+        bvh, scratch, origin, direction, tmin, tmax, begin, end,
+        hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+    ):  # fmt: skip
+        """Trace rays ``begin:end`` through ``bvh`` (WideArrays); return how many overflowed.
+
+        The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
+        :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
+        counters in ``counters[r]``.
         """
-        _ = (query, with_stats, parallel, width)
-        overflow = 0
-        n_rays = origin.shape[0]
-        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
+        stack_ref, stack_t, lane_t = scratch
         box = bvh.box
         refs = bvh.ref
-        # Workers take chunks of rays from a shared counter (rayaccel._work).
-        counter = new_counter()
-        for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
-            stack_ref = np.empty(stack_size, dtype=np.int32)
-            stack_t = np.empty(stack_size, dtype=np.float32)
-            lane_t = np.empty(width, dtype=np.float32)
-            while True:
-                chunk = next_item(counter, n_chunks)
-                if chunk < 0:
-                    break
-                for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
-                    n_steps = 0
-                    n_nodes = 0
-                    n_box = 0
-                    n_prim = 0
-                    peak = 0
-                    n_bytes = 0
-                    (
-                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-                    best_prim = -1
-                    if valid:
-                        best_u = ZERO32
-                        best_v = ZERO32
-                        box_lo = t_lo - pad
-                        box_hi = t_hit + pad
-                        # Near/far plane columns of each axis in the structure-of-arrays row.
-                        near_x = width * nx
-                        far_x = width - near_x
-                        near_y = width * (ny - 2) + 2 * width
-                        far_y = 5 * width - near_y
-                        near_z = width * (nz - 4) + 4 * width
-                        far_z = 9 * width - near_z
-                        sp = 0
-                        entry = root_entry(
-                            bvh.root_box, ox, oy, oz, ix, iy, iz,
-                            nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                        )  # fmt: skip
-                        if with_stats:
-                            n_box += 1
-                        node = bvh.root_ref[0]
-                        done = entry == INF32
-                        while not done:
-                            if with_stats:
-                                n_steps += 1
-                                n_nodes += 1
-                            if node >= 0:
-                                # All child boxes in one vector slab test (aabb_wide.py).
-                                if width == 8:
-                                    mask = slab_test8(
-                                        box, node, near_x, far_x, near_y, far_y, near_z, far_z,
-                                        ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
-                                    )  # fmt: skip
-                                else:
-                                    mask = slab_test4(
-                                        box, node, near_x, far_x, near_y, far_y, near_z, far_z,
-                                        ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
-                                    )  # fmt: skip
-                                if with_stats:
-                                    n_box += refs[node, count_col]
-                                    n_bytes += row_bytes
-                                if mask != 0 and mask & (mask - 1) == 0:
-                                    # One hit (the common case): go there, through a branch per
-                                    # lane, so the CPU predicts the child and fetches it at once
-                                    # instead of waiting for the test to compute its index.
-                                    for j in range(width):
-                                        if mask == 1 << j:
-                                            keep_branch()
-                                            node = refs[node, ref_col + j]
-                                            break
-                                    continue
-                                if mask != 0:
-                                    # The first hit lane; with one hit (the common case) go there.
-                                    j = trailing_zeros(mask)
-                                    mask &= mask - 1
-                                    next_node = refs[node, ref_col + j]
-                                    next_t = lane_t[j]
-                                    n_hit = 1
-                                    # More hits: keep the nearest as the next node and insert the
-                                    # others among this row's pushes, nearest on top (a stable
-                                    # insertion sort: equal distances keep lane order).
-                                    while mask != 0:
-                                        j = trailing_zeros(mask)
-                                        mask &= mask - 1
-                                        child = refs[node, ref_col + j]
-                                        tj = lane_t[j]
-                                        if tj < next_t:
-                                            keep_branch()
-                                            child, next_node = next_node, child
-                                            tj, next_t = next_t, tj
-                                            k = sp
-                                            while k > sp - (n_hit - 1) and stack_t[k - 1] < tj:
-                                                stack_ref[k] = stack_ref[k - 1]
-                                                stack_t[k] = stack_t[k - 1]
-                                                k -= 1
-                                        else:
-                                            keep_branch()
-                                            k = sp
-                                            while k > sp - (n_hit - 1) and stack_t[k - 1] <= tj:
-                                                stack_ref[k] = stack_ref[k - 1]
-                                                stack_t[k] = stack_t[k - 1]
-                                                k -= 1
-                                        stack_ref[k] = child
-                                        stack_t[k] = tj
-                                        sp += 1
-                                        n_hit += 1
-                                    if next_node >= 0:
-                                        prefetch_row(box, next_node)
-                                    if sp > stack_size - width:
-                                        overflow += 1
-                                        break
-                                    if with_stats and n_hit > 1:
-                                        n_bytes += STACK_ENTRY_BYTES * (n_hit - 1)
-                                        peak = max(peak, sp)
-                                    node = next_node
-                                    continue
-                            else:
-                                # Leaf: test its triangles, shrinking t_hit.
-                                leaf = ~node
-                                first = bvh.leaf_first[leaf]
-                                last = first + bvh.leaf_count[leaf]
-                                if with_stats:
-                                    n_bytes += LEAF_BYTES + _PRIM_BYTES * (last - first)
-                                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                                    query == QUERY_ANY,
-                                )  # fmt: skip
-                                box_hi = t_hit + pad
-                                if with_stats:
-                                    n_prim += tested
-                                if query == QUERY_ANY and best_prim >= 0:
-                                    break
-                            # Pop the next entry still in front of the closest hit.
-                            done = True
-                            while sp > 0:
-                                sp -= 1
-                                if with_stats:
-                                    n_bytes += STACK_ENTRY_BYTES
-                                if stack_t[sp] <= box_hi:
-                                    node = stack_ref[sp]
-                                    done = False
-                                    break
-                        if best_prim >= 0:
-                            hit_t[r] = t_hit
-                            hit_prim[r] = best_prim
-                            hit_u[r] = best_u
-                            hit_v[r] = best_v
+        n_overflowed = 0
+        for r in range(begin, end):
+            overflowed = 0
+            n_steps = 0
+            n_nodes = 0
+            n_box = 0
+            n_prim = 0
+            peak = 0
+            n_bytes = 0
+            (
+                valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+            ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+            best_prim = -1
+            best_u = ZERO32
+            best_v = ZERO32
+            if valid:
+                box_lo = t_lo - pad
+                box_hi = t_hit + pad
+                # Near/far plane columns of each axis in the structure-of-arrays row.
+                near_x = width * nx
+                far_x = width - near_x
+                near_y = width * (ny - 2) + 2 * width
+                far_y = 5 * width - near_y
+                near_z = width * (nz - 4) + 4 * width
+                far_z = 9 * width - near_z
+                sp = 0
+                entry = root_entry(
+                    bvh.root_box, ox, oy, oz, ix, iy, iz,
+                    nx, ny, nz, fx, fy, fz, box_lo, box_hi,
+                )  # fmt: skip
+                if with_stats:
+                    n_box += 1
+                node = bvh.root_ref[0]
+                done = entry == INF32
+                while not done:
                     if with_stats:
-                        counters[r, Counter.STEPS] = n_steps
-                        counters[r, Counter.NODES] = n_nodes
-                        counters[r, Counter.BOX_TESTS] = n_box
-                        counters[r, Counter.PRIM_TESTS] = n_prim
-                        counters[r, Counter.STACK_PEAK] = peak
-                        counters[r, Counter.BYTES] = n_bytes
-        return overflow
+                        n_steps += 1
+                        n_nodes += 1
+                    if node >= 0:
+                        # All child boxes in one vector slab test (aabb_wide.py).
+                        if width == 8:
+                            mask = slab_test8(
+                                box, node, near_x, far_x, near_y, far_y, near_z, far_z,
+                                ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
+                            )  # fmt: skip
+                        else:
+                            mask = slab_test4(
+                                box, node, near_x, far_x, near_y, far_y, near_z, far_z,
+                                ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
+                            )  # fmt: skip
+                        if with_stats:
+                            n_box += refs[node, count_col]
+                            n_bytes += row_bytes
+                        if mask != 0 and mask & (mask - 1) == 0:
+                            # One hit (the common case): go there, through a branch per
+                            # lane, so the CPU predicts the child and fetches it at once
+                            # instead of waiting for the test to compute its index.
+                            for j in range(width):
+                                if mask == 1 << j:
+                                    keep_branch()
+                                    node = refs[node, ref_col + j]
+                                    break
+                            continue
+                        if mask != 0:
+                            # The first hit lane; with one hit (the common case) go there.
+                            j = trailing_zeros(mask)
+                            mask &= mask - 1
+                            next_node = refs[node, ref_col + j]
+                            next_t = lane_t[j]
+                            n_hit = 1
+                            # More hits: keep the nearest as the next node and insert the
+                            # others among this row's pushes, nearest on top (a stable
+                            # insertion sort: equal distances keep lane order).
+                            while mask != 0:
+                                j = trailing_zeros(mask)
+                                mask &= mask - 1
+                                child = refs[node, ref_col + j]
+                                tj = lane_t[j]
+                                if tj < next_t:
+                                    keep_branch()
+                                    child, next_node = next_node, child
+                                    tj, next_t = next_t, tj
+                                    k = sp
+                                    while k > sp - (n_hit - 1) and stack_t[k - 1] < tj:
+                                        stack_ref[k] = stack_ref[k - 1]
+                                        stack_t[k] = stack_t[k - 1]
+                                        k -= 1
+                                else:
+                                    keep_branch()
+                                    k = sp
+                                    while k > sp - (n_hit - 1) and stack_t[k - 1] <= tj:
+                                        stack_ref[k] = stack_ref[k - 1]
+                                        stack_t[k] = stack_t[k - 1]
+                                        k -= 1
+                                stack_ref[k] = child
+                                stack_t[k] = tj
+                                sp += 1
+                                n_hit += 1
+                            if next_node >= 0:
+                                prefetch_row(box, next_node)
+                            if sp > stack_size - width:
+                                overflowed = 1
+                                break
+                            if with_stats and n_hit > 1:
+                                n_bytes += STACK_ENTRY_BYTES * (n_hit - 1)
+                                peak = max(peak, sp)
+                            node = next_node
+                            continue
+                    else:
+                        # Leaf: test its triangles, shrinking t_hit.
+                        leaf = ~node
+                        first = bvh.leaf_first[leaf]
+                        last = first + bvh.leaf_count[leaf]
+                        if with_stats:
+                            n_bytes += LEAF_BYTES + _PRIM_BYTES * (last - first)
+                        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                            bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                            Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                            query == QUERY_ANY,
+                        )  # fmt: skip
+                        box_hi = t_hit + pad
+                        if with_stats:
+                            n_prim += tested
+                        if query == QUERY_ANY and best_prim >= 0:
+                            break
+                    # Pop the next entry still in front of the closest hit.
+                    done = True
+                    while sp > 0:
+                        sp -= 1
+                        if with_stats:
+                            n_bytes += STACK_ENTRY_BYTES
+                        if stack_t[sp] <= box_hi:
+                            node = stack_ref[sp]
+                            done = False
+                            break
+            if with_stats:
+                counters[r, Counter.STEPS] = n_steps
+                counters[r, Counter.NODES] = n_nodes
+                counters[r, Counter.BOX_TESTS] = n_box
+                counters[r, Counter.PRIM_TESTS] = n_prim
+                counters[r, Counter.STACK_PEAK] = peak
+                counters[r, Counter.BYTES] = n_bytes
+            store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
+            n_overflowed += overflowed
+        return n_overflowed
 
-    return kernel
+    return cpu_inline(make_scratch_py), cpu_inline(trace_rays_py)
+
+
+@functools.cache
+def wide_kernels(width: int) -> Any:
+    """Return ``kernel_for(query, with_stats, parallel)``: the compiled ``width``-wide variants."""
+    return body_kernels(*wide_body(width))
 
 
 def wide_bvh(
@@ -308,5 +310,4 @@ def trace_bvh2_wide(
     """
     width = (options or WideOptions()).width
     wide = wide_bvh(bvh, mesh, cache, width)
-    kernel_for = functools.partial(trace_kernel, width=width)
-    return run_trace(kernel_for, wide.arrays(), rays, query, stats)
+    return run_trace(wide_kernels(width), wide.arrays(), rays, query, stats)
