@@ -8,7 +8,7 @@ import pytest
 
 import rayaccel
 from rayaccel.bvh.layouts.linked_tree import linked_to_canonical, to_linked
-from rayaccel.bvh.steps.rotate import N_MOVES, RotateOptions, _apply_move, _move_delta
+from rayaccel.bvh.steps.rotate import N_MOVES, RotateOptions, apply_move, move_delta
 from rayaccel.errors import InvalidInputError
 
 
@@ -33,10 +33,10 @@ def test_every_move_changes_the_sah_by_its_local_delta():
         for move in range(N_MOVES):
             work = tree._replace(left=tree.left.copy(), right=tree.right.copy(),
                                  lo=tree.lo.copy(), hi=tree.hi.copy())
-            delta = _move_delta(np.int32(node), move, work.left, work.right, work.lo, work.hi)
+            delta = move_delta(np.int32(node), move, work.left, work.right, work.lo, work.hi)
             if not np.isfinite(delta):
                 continue
-            _apply_move(np.int32(node), move, work.left, work.right, work.lo, work.hi)
+            apply_move(np.int32(node), move, work.left, work.right, work.lo, work.hi)
             after = linked_to_canonical(work, 0, bvh.n_prims)
             after.validate(mesh.triangles())
             assert _leaves(after) == _leaves(bvh)

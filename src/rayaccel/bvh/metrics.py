@@ -6,11 +6,12 @@ Aila, Karras, Laine 2013, "On Quality Metrics of Bounding Volume Hierarchies" (H
   the expected cost of a random ray that hits the root box.
 - **EPO** (:func:`epo`), end-point overlap: the expected extra cost of rays whose end
   point (the hit) lies on geometry *outside* a node's subtree but inside its box,
-  ``Σ_n C(n)·A((S \\ Q(n)) ∩ box(n)) / A(S)``, with ``S`` the scene surface, ``Q(n)`` the
+  ``Σ_n C(n)·A((S ∖ Q(n)) ∩ box(n)) / A(S)``, with ``S`` the scene surface, ``Q(n)`` the
   surface in n's subtree and ``C(n)`` = ``C_inner`` or ``C_prim·N(n)``. Computed per
   triangle in parallel: walk the nodes whose box overlaps it and, where the triangle
   is not in the node's subtree, add the area of the triangle clipped to the box
-  (Sutherland–Hodgman against six planes, float64). A triangle of a spatial-split
+  (Sutherland–Hodgman against six planes, float64:
+  :func:`~rayaccel.kernels.clip.clip_triangle_box`). A triangle of a spatial-split
   BVH counts as in ``Q(n)`` when any of its references is in n's subtree.
   Spatial-split structures therefore have a lower EPO by construction.
 - **LCV** (:func:`lcv`), leaf count variability: the standard deviation over rays of
@@ -27,6 +28,7 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
 from rayaccel.dtypes import REAL
+from rayaccel.kernels.clip import clip_triangle_box, polygon_area
 
 
 @cpu_kernel()
@@ -47,57 +49,12 @@ def _subtree_ref_ranges(node_first, node_count):
 
 
 @cpu_inline
-def _clip_plane(src, n_src, dst, axis, value, keep_above):
-    """Clip polygon ``src[:n_src]`` to ``x[axis] >= value`` (or ``<=``); return the count."""
-    n_dst = 0
-    for i in range(n_src):
-        j = (i + 1) % n_src
-        di = src[i, axis] - value
-        dj = src[j, axis] - value
-        if not keep_above:
-            di = -di
-            dj = -dj
-        if di >= 0 and n_dst < dst.shape[0]:
-            for k in range(3):
-                dst[n_dst, k] = src[i, k]
-            n_dst += 1
-        if (di >= 0) != (dj >= 0) and n_dst < dst.shape[0]:
-            t = di / (di - dj)
-            for k in range(3):
-                dst[n_dst, k] = src[i, k] + t * (src[j, k] - src[i, k])
-            n_dst += 1
-    return n_dst
-
-
-@cpu_inline
 def _clipped_area(tri, prim, lo, hi, node, poly_a, poly_b):
-    """Area of triangle ``prim`` inside box ``node`` (float64)."""
-    for v in range(3):
-        for k in range(3):
-            poly_a[v, k] = tri[prim, v, k]
-    m = 3
-    for a in range(3):
-        m = _clip_plane(poly_a, m, poly_b, a, np.float64(lo[node, a]), True)
-        if m < 3:
-            return 0.0
-        m = _clip_plane(poly_b, m, poly_a, a, np.float64(hi[node, a]), False)
-        if m < 3:
-            return 0.0
-    # Polygon area: half the norm of the summed cross products (fan from vertex 0).
-    cx = 0.0
-    cy = 0.0
-    cz = 0.0
-    for i in range(1, m - 1):
-        ux = poly_a[i, 0] - poly_a[0, 0]
-        uy = poly_a[i, 1] - poly_a[0, 1]
-        uz = poly_a[i, 2] - poly_a[0, 2]
-        vx = poly_a[i + 1, 0] - poly_a[0, 0]
-        vy = poly_a[i + 1, 1] - poly_a[0, 1]
-        vz = poly_a[i + 1, 2] - poly_a[0, 2]
-        cx += uy * vz - uz * vy
-        cy += uz * vx - ux * vz
-        cz += ux * vy - uy * vx
-    return 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
+    """Area of triangle ``prim`` inside box ``node`` (float64; 0 when less than a polygon)."""
+    m = clip_triangle_box(tri, prim, lo[node], hi[node], poly_a, poly_b, 3)
+    if m < 3:
+        return 0.0
+    return polygon_area(poly_a, m)
 
 
 @cpu_kernel(parallel=True)
@@ -236,13 +193,14 @@ def leaf_counts(
 
     ``t_hit`` is the closest hit distance (``tmax`` or inf for a miss).
     """
-    return _leaf_counts_kernel(
+    counts: np.ndarray = _leaf_counts_kernel(
         bvh.arrays(),
         np.ascontiguousarray(origin, dtype=REAL),
         np.ascontiguousarray(direction, dtype=REAL),
         np.ascontiguousarray(tmin, dtype=REAL),
         np.ascontiguousarray(t_hit, dtype=REAL),
     )
+    return counts
 
 
 def lcv(counts: np.ndarray) -> float:

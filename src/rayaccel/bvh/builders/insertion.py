@@ -44,14 +44,14 @@ from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh.builders.common import reference_boxes
 from rayaccel.bvh.builders.lbvh import check_leaf_costs
-from rayaccel.bvh.builders.refit import half_area
 from rayaccel.bvh.builders.refs import BuildRefs
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.layouts.linked_tree import LinkedTree, collapsed_to_canonical
-from rayaccel.bvh.steps.reinsert import attach_sibling, find_best_sibling, union_area
+from rayaccel.bvh.steps.reinsert import attach_sibling, find_best_sibling
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.morton import morton_codes
 from rayaccel.kernels.radix_sort import radix_sort
+from rayaccel.kernels.sah import node_half_area, union_half_area
 from rayaccel.scene.mesh import TriangleMesh
 
 ORDERS = ("input", "random", "morton")
@@ -110,13 +110,13 @@ class InsertionOptions:
 @cpu_inline
 def _greedy_sibling(root, leaf, left, right, lo, hi, max_visits):
     """Goldsmith & Salmon's descent: the cheapest sibling on the path of least growth."""
-    leaf_area = half_area(lo, hi, leaf)
+    leaf_area = node_half_area(lo, hi, leaf)
     best = np.inf
     best_node = root
     induced = 0.0
     x = root
     for _ in range(max_visits):
-        merged = union_area(lo, hi, x, leaf)
+        merged = union_half_area(lo, hi, x, leaf)
         # Make the leaf X's sibling here?
         if induced + merged < best:
             best = induced + merged
@@ -124,16 +124,16 @@ def _greedy_sibling(root, leaf, left, right, lo, hi, max_visits):
         if left[x] < 0:
             break
         # Going down enlarges X; nothing below can cost less than induced + A(leaf).
-        induced += merged - half_area(lo, hi, x)
+        induced += merged - node_half_area(lo, hi, x)
         if induced + leaf_area >= best:
             break
         # Follow the child that grows least (ties: smaller merged box, then left).
         a = left[x]
         b = right[x]
-        merged_a = union_area(lo, hi, a, leaf)
-        merged_b = union_area(lo, hi, b, leaf)
-        grow_a = merged_a - half_area(lo, hi, a)
-        grow_b = merged_b - half_area(lo, hi, b)
+        merged_a = union_half_area(lo, hi, a, leaf)
+        merged_b = union_half_area(lo, hi, b, leaf)
+        grow_a = merged_a - node_half_area(lo, hi, a)
+        grow_b = merged_b - node_half_area(lo, hi, b)
         if grow_b < grow_a or (grow_b == grow_a and merged_b < merged_a):
             x = b
         else:

@@ -21,19 +21,7 @@ from numba import prange
 from rayaccel._hugepages import zeros_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
-
-
-def _half_area_py(lo, hi, i):
-    """Half surface area of box ``i`` (``i >= 0``) of ``lo``/``hi`` in float64."""
-    u = np.uint64(i)
-    ex = np.float64(hi[u, 0]) - lo[u, 0]
-    ey = np.float64(hi[u, 1]) - lo[u, 1]
-    ez = np.float64(hi[u, 2]) - lo[u, 2]
-    return ex * ey + ey * ez + ez * ex
-
-
-half_area = cpu_inline(_half_area_py)
-
+from rayaccel.kernels.sah import node_half_area
 
 #: Subtrees handed to threads by the parallel passes (independent of the thread count,
 #: so results never depend on it).
@@ -110,7 +98,7 @@ def _collapse_node_py(
         as_leaf[u] = 1
         n_eff[u] = 1
         n_prim[u] = count[u]
-        cost[u] = c_prim * half_area(lo, hi, node) * count[u]
+        cost[u] = c_prim * node_half_area(lo, hi, node) * count[u]
         return
     b = np.uint64(right[u])
     a = np.uint64(a)
@@ -118,7 +106,7 @@ def _collapse_node_py(
     for k in range(3):
         lo[u, k] = min(lo[a, k], lo[b, k])
         hi[u, k] = max(hi[a, k], hi[b, k])
-    area = half_area(lo, hi, node)
+    area = node_half_area(lo, hi, node)
     n_prim[u] = n_prim[a] + n_prim[b]
     split_cost = c_inner * area + cost[a] + cost[b]
     leaf_cost = c_prim * area * n_prim[u]

@@ -50,9 +50,9 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh.builders.refs import BuildRefs
-from rayaccel.bvh.builders.sbvh import _split_reference
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.clip import split_triangle_bounds
 from rayaccel.scene.mesh import TriangleMesh
 
 #: Finest spatial-median level searched (2^-32 of the scene extent is below float32 precision).
@@ -425,7 +425,7 @@ def _median_kernel(tri, p, scale, cap, s_lo, s_ext, fill, offsets, out_lo, out_h
                             out_prim[slot] = t
                         slot += 1
                         break
-                    _split_reference(tri, t, cur, axis, pos, left, right)
+                    split_triangle_bounds(tri, t, cur, axis, pos, left, right)
                     # Share the count by longest extent; keep the smaller half, push the larger.
                     _, e_l = _longest_extent(left)
                     _, e_r = _longest_extent(right)

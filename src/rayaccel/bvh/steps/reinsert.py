@@ -36,6 +36,7 @@ from rayaccel.bvh.builders.refit import refit_up
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.layouts.linked_tree import linked_to_canonical, to_linked
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.sah import node_half_area, union_half_area
 from rayaccel.scene.mesh import TriangleMesh
 
 
@@ -72,26 +73,6 @@ class ReinsertOptions:
             raise InvalidInputError(f"tolerance: expected >= 0, got {self.tolerance}")
 
 
-def _area_py(lo, hi, i):
-    ex = np.float64(hi[i, 0]) - lo[i, 0]
-    ey = np.float64(hi[i, 1]) - lo[i, 1]
-    ez = np.float64(hi[i, 2]) - lo[i, 2]
-    return ex * ey + ey * ez + ez * ex
-
-
-_area = cpu_inline(_area_py)
-
-
-def _union_area_py(lo, hi, i, j):
-    ex = np.float64(max(hi[i, 0], hi[j, 0])) - min(lo[i, 0], lo[j, 0])
-    ey = np.float64(max(hi[i, 1], hi[j, 1])) - min(lo[i, 1], lo[j, 1])
-    ez = np.float64(max(hi[i, 2], hi[j, 2])) - min(lo[i, 2], lo[j, 2])
-    return ex * ey + ey * ez + ez * ex
-
-
-union_area = cpu_inline(_union_area_py)
-
-
 @cpu_kernel(parallel=True)
 def _inefficiency(left, right, parent, lo, hi):
     """Return Bittner's node score (−1 for leaves and the root)."""
@@ -101,9 +82,9 @@ def _inefficiency(left, right, parent, lo, hi):
         if left[i] < 0 or parent[i] < 0:
             score[i] = -1.0
             continue
-        area = _area(lo, hi, i)
-        a_l = _area(lo, hi, left[i])
-        a_r = _area(lo, hi, right[i])
+        area = node_half_area(lo, hi, i)
+        a_l = node_half_area(lo, hi, left[i])
+        a_r = node_half_area(lo, hi, right[i])
         m_sum = area / max(0.5 * (a_l + a_r), 1e-300)
         m_min = area / max(min(a_l, a_r), 1e-300)
         score[i] = m_sum * m_min * area
@@ -156,7 +137,7 @@ def find_best_sibling(root, orphan, left, right, lo, hi, h_cost, h_node, max_vis
     At most ``max_visits`` nodes are evaluated (the best one so far is returned when
     the budget runs out); the heap ``h_cost``/``h_node`` needs one slot per node.
     """
-    orphan_area = _area(lo, hi, orphan)
+    orphan_area = node_half_area(lo, hi, orphan)
     best = np.inf
     best_node = root
     size = _heap_push(h_cost, h_node, 0, 0.0, root)
@@ -168,14 +149,14 @@ def find_best_sibling(root, orphan, left, right, lo, hi, h_cost, h_node, max_vis
         if induced + orphan_area >= best:
             break
         visits += 1
-        merged = union_area(lo, hi, x, orphan)
+        merged = union_half_area(lo, hi, x, orphan)
         cost = induced + merged
         if cost < best:
             best = cost
             best_node = x
         # Children inherit the growth of X; prune when they cannot beat the best.
         if left[x] >= 0:
-            child_induced = induced + merged - _area(lo, hi, x)
+            child_induced = induced + merged - node_half_area(lo, hi, x)
             if child_induced + orphan_area < best and size + 2 <= h_cost.shape[0]:
                 size = _heap_push(h_cost, h_node, size, child_induced, left[x])
                 size = _heap_push(h_cost, h_node, size, child_induced, right[x])
@@ -237,7 +218,7 @@ def _reinsert_batch(root, batch, left, right, parent, lo, hi):
             refit_up(sibling, parent, left, right, lo, hi)
         orphan_a = left[node]
         orphan_b = right[node]
-        if _area(lo, hi, orphan_b) > _area(lo, hi, orphan_a):
+        if node_half_area(lo, hi, orphan_b) > node_half_area(lo, hi, orphan_a):
             orphan_a, orphan_b = orphan_b, orphan_a
         # Reinsert both orphans, larger first, reusing N and P as their new parents.
         for k in range(2):
@@ -253,7 +234,7 @@ def _inner_area(left, lo, hi):
     total = 0.0
     for i in range(left.shape[0]):
         if left[i] >= 0:
-            total += _area(lo, hi, i)
+            total += node_half_area(lo, hi, i)
     return total
 
 

@@ -37,11 +37,10 @@ import numpy as np
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
-from rayaccel.bvh.builders.refit import half_area
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.layouts.linked_tree import linked_to_canonical, to_linked
-from rayaccel.bvh.steps.reinsert import union_area
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.sah import node_half_area, union_half_area
 from rayaccel.scene.mesh import TriangleMesh
 
 METHODS = ("hill", "anneal")
@@ -103,8 +102,27 @@ class RotateOptions:
 
 
 @cpu_inline
-def _move_delta(node, move, left, right, lo, hi):
-    """Change of the inner-node area sum if ``move`` is applied at ``node`` (inf: not possible)."""
+def move_delta(node, move, left, right, lo, hi):
+    """Return the change of the inner-node area sum if ``move`` is applied at ``node``.
+
+    Parameters
+    ----------
+    node : int
+        An inner node of the linked tree ``left``/``right`` (``-1``: leaf).
+    move : int
+        ``0..N_MOVES-1``: L with RL or RR (0, 1), R with LL or LR (2, 3), LL with RL or
+        RR (4, 5) (Kensler 2008, Fig. 2).
+    left, right : (n,) int32 ndarray
+    lo, hi : (n, 3) float32 ndarray
+        Node boxes.
+
+    Returns
+    -------
+    float64
+        ``ΔA``, the change of the half areas of N's children (the only boxes the move
+        changes); ``inf`` when the move needs a grandchild that is a leaf. The SAH cost
+        changes by ``C_inner·ΔA/A(root)``.
+    """
     a = left[node]
     b = right[node]
     if move < 2:
@@ -112,13 +130,13 @@ def _move_delta(node, move, left, right, lo, hi):
         if left[b] < 0:
             return np.inf
         other = right[b] if move == 0 else left[b]
-        return union_area(lo, hi, a, other) - half_area(lo, hi, b)
+        return union_half_area(lo, hi, a, other) - node_half_area(lo, hi, b)
     if move < 4:
         # R with a child of L: L's box becomes R ∪ (L's other child).
         if left[a] < 0:
             return np.inf
         other = right[a] if move == 2 else left[a]
-        return union_area(lo, hi, b, other) - half_area(lo, hi, a)
+        return union_half_area(lo, hi, b, other) - node_half_area(lo, hi, a)
     # LL with RL or RR: both child boxes change.
     if left[a] < 0 or left[b] < 0:
         return np.inf
@@ -126,10 +144,10 @@ def _move_delta(node, move, left, right, lo, hi):
     lr = right[a]
     rl = left[b]
     rr = right[b]
-    old = half_area(lo, hi, a) + half_area(lo, hi, b)
+    old = node_half_area(lo, hi, a) + node_half_area(lo, hi, b)
     if move == 4:
-        return union_area(lo, hi, rl, lr) + union_area(lo, hi, ll, rr) - old
-    return union_area(lo, hi, rr, lr) + union_area(lo, hi, rl, ll) - old
+        return union_half_area(lo, hi, rl, lr) + union_half_area(lo, hi, ll, rr) - old
+    return union_half_area(lo, hi, rr, lr) + union_half_area(lo, hi, rl, ll) - old
 
 
 @cpu_inline
@@ -143,8 +161,12 @@ def _refit_node(x, left, right, lo, hi):
 
 
 @cpu_inline
-def _apply_move(node, move, left, right, lo, hi):
-    """Exchange the two subtrees named by ``move`` and refit the changed child boxes."""
+def apply_move(node, move, left, right, lo, hi):
+    """Apply ``move`` at ``node`` in place: exchange two subtrees and refit N's children.
+
+    Parameters are those of :func:`move_delta`; ``move`` must be possible there (a finite
+    delta). ``left``, ``right``, ``lo`` and ``hi`` are updated; no other node changes.
+    """
     a = left[node]
     b = right[node]
     if move == 0:  # L <-> RL
@@ -206,14 +228,14 @@ def _hill_pass(order, m, left, right, lo, hi):
     for t in range(m):
         node = order[t]
         best_move = -1
-        best_delta = -MIN_GAIN * half_area(lo, hi, node)
+        best_delta = -MIN_GAIN * node_half_area(lo, hi, node)
         for move in range(N_MOVES):
-            delta = _move_delta(node, move, left, right, lo, hi)
+            delta = move_delta(node, move, left, right, lo, hi)
             if delta < best_delta:
                 best_delta = delta
                 best_move = move
         if best_move >= 0:
-            _apply_move(node, best_move, left, right, lo, hi)
+            apply_move(node, best_move, left, right, lo, hi)
             moves += 1
     return moves
 
@@ -222,7 +244,7 @@ def _hill_pass(order, m, left, right, lo, hi):
 def _inner_area(order, m, lo, hi):
     total = 0.0
     for t in range(m):
-        total += half_area(lo, hi, order[t])
+        total += node_half_area(lo, hi, order[t])
     return total
 
 
@@ -243,7 +265,7 @@ def _hill_climb(root, left, right, lo, hi, max_passes):
 
 @cpu_kernel()
 def _anneal(root, left, right, lo, hi, best_left, best_right, best_lo, best_hi, schedule, seed):
-    """Simulated annealing in place (Kensler 2008 §4); the best tree seen goes to ``best_*``.
+    """Anneal the tree in place (Kensler 2008 §4); the best tree seen goes to ``best_*``.
 
     ``schedule`` holds the temperature of every pass. Returns the best inner-area sum.
     """
@@ -264,7 +286,7 @@ def _anneal(root, left, right, lo, hi, best_left, best_right, best_lo, best_hi, 
         m = _post_order(root, left, right, order, stack)
         for t in range(m):
             node = order[t]
-            area = half_area(lo, hi, node)
+            area = node_half_area(lo, hi, node)
             if not area > 0.0:
                 continue
             # Propose one applicable move uniformly at random (moves 0-1 need an inner
@@ -279,11 +301,11 @@ def _anneal(root, left, right, lo, hi, best_left, best_right, best_lo, best_hi, 
             if n_valid == 0:
                 continue
             move = valid[min(int(np.random.random() * n_valid), n_valid - 1)]  # noqa: NPY002
-            delta = _move_delta(node, move, left, right, lo, hi)
+            delta = move_delta(node, move, left, right, lo, hi)
             # Metropolis: always downhill, uphill with probability exp(-ΔA / (A(N)·T)).
             u = np.random.random()  # noqa: NPY002
             if delta < 0.0 or u < np.exp(-delta / (area * temperature)):
-                _apply_move(node, move, left, right, lo, hi)
+                apply_move(node, move, left, right, lo, hi)
         total = _inner_area(order, m, lo, hi)
         if total < best:
             best = total

@@ -53,10 +53,11 @@ from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.bvh.builders.common import triangle_bounds
 from rayaccel.bvh.builders.lbvh import check_leaf_costs
-from rayaccel.bvh.builders.refit import half_area, refit_collapse
+from rayaccel.bvh.builders.refit import refit_collapse
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.layouts.linked_tree import LinkedTree, collapsed_to_canonical
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.sah import node_half_area
 from rayaccel.scene.mesh import TriangleMesh
 
 #: Largest treelet: the DP tables hold 2^n entries and the partitions cost O(3^n).
@@ -275,7 +276,7 @@ def _restructure_py(
         for j in range(k):
             x = leaves[j]
             if left[x] >= 0:
-                a = half_area(lo, hi, x)
+                a = node_half_area(lo, hi, x)
                 if a > best_area:
                     best_area = a
                     best = j
@@ -312,7 +313,7 @@ def _restructure_py(
             box_lo[s, a] = min(box_lo[rest, a], box_lo[low, a])
             box_hi[s, a] = max(box_hi[rest, a], box_hi[low, a])
         s_prim[s] = s_prim[rest] + s_prim[low]
-        area = half_area(box_lo, box_hi, s)
+        area = node_half_area(box_lo, box_hi, s)
         # Each unordered partition once: P ranges over non-empty subsets of `rest`. Only
         # the minimum is kept (a branch-free loop); the rebuild finds the argmin again.
         best_split = np.inf
