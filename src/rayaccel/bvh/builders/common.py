@@ -5,6 +5,11 @@ are allocated as an adjacent pair, but where parallel subtree builds may leave
 unused slots. :func:`compact_to_canonical` renumbers the reachable nodes in
 depth-first order (root 0, siblings adjacent), which is the canonical
 :class:`~rayaccel.bvh.layouts.bvh2.Bvh2` and keeps a subtree's nodes close in memory.
+
+References are 32-byte rows ``[lo, id bits, hi, 0]`` (:func:`triangle_ref_rows`,
+:func:`ref_rows`) that the binned and spatial splits partition in place;
+:func:`ref_range_bounds` gives a range's box and doubled-centroid box. The depth
+bound (:func:`depth_forces_median`) is what every top-down split function obeys.
 """
 
 from __future__ import annotations
@@ -85,6 +90,41 @@ def triangle_ref_rows(vertices, faces):
     return refs
 
 
+def ref_rows(refs: BuildRefs) -> np.ndarray:
+    """Return the ``(m, 8)`` float32 reference rows of pre-built ``refs``.
+
+    Same row layout as :func:`triangle_ref_rows`: ``[lo, prim id bits, hi, 0]``.
+    """
+    rows = np.zeros((refs.n_refs, 8), dtype=np.float32)
+    rows[:, 0:3] = refs.lo
+    rows[:, 4:7] = refs.hi
+    rows.view(np.int32)[:, 3] = refs.prim
+    return rows
+
+
+def _ref_range_bounds_py(refs, begin, end, out):
+    """Write the box ``out[0:6]`` and doubled-centroid box ``out[6:12]`` of ``refs[begin:end]``.
+
+    ``refs`` are reference rows (:func:`triangle_ref_rows`); a row's doubled centroid
+    is ``lo + hi``, the binning key of the top-down builders.
+    """
+    for a in range(3):
+        out[a] = np.inf
+        out[3 + a] = -np.inf
+        out[6 + a] = np.inf
+        out[9 + a] = -np.inf
+    for i in range(begin, end):
+        for a in range(3):
+            out[a] = min(out[a], refs[i, a])
+            out[3 + a] = max(out[3 + a], refs[i, 4 + a])
+            c = refs[i, a] + refs[i, 4 + a]
+            out[6 + a] = min(out[6 + a], c)
+            out[9 + a] = max(out[9 + a], c)
+
+
+ref_range_bounds = cpu_inline(_ref_range_bounds_py)
+
+
 def reference_boxes(
     mesh: TriangleMesh, refs: BuildRefs | None, builder: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -98,25 +138,6 @@ def reference_boxes(
         return lo, hi, np.arange(mesh.n_triangles, dtype=np.int32)
     lo, hi, prim = check_refs(refs, mesh, builder)
     return lo, hi, prim
-
-
-def _range_bounds_py(index, begin, end, prim_lo, prim_hi, centroid, out):
-    """Write box ``out[0:6]`` and centroid box ``out[6:12]`` of ``index[begin:end]``."""
-    for a in range(3):
-        out[a] = np.inf
-        out[3 + a] = -np.inf
-        out[6 + a] = np.inf
-        out[9 + a] = -np.inf
-    for i in range(begin, end):
-        p = index[i]
-        for a in range(3):
-            out[a] = min(out[a], prim_lo[p, a])
-            out[3 + a] = max(out[3 + a], prim_hi[p, a])
-            out[6 + a] = min(out[6 + a], centroid[p, a])
-            out[9 + a] = max(out[9 + a], centroid[p, a])
-
-
-range_bounds = cpu_inline(_range_bounds_py)
 
 
 def _ceil_log2_py(n):
