@@ -331,8 +331,11 @@ def check_counter_invariants(rays: RayBatch, hits: HitBatch) -> None:
         assert (column >= 0).all(), f"negative {name}"
     hit = hits.prim >= 0
     assert (stats["prim_tests"][hit] >= 1).all(), "a hit with no primitive test"
-    assert (stats["nodes"][hit] >= 1).all(), "a hit with no node visited"
-    assert (stats["box_tests"][hit] >= 1).all(), "a hit with no box test"
+    # Hierarchies enter nodes, grids walk cells: a hit needs one or the other.
+    walked = stats["nodes"] + stats["cells"]
+    assert (walked[hit] >= 1).all(), "a hit with no node entered or cell visited"
+    entered = hit & (stats["nodes"] > 0)
+    assert (stats["box_tests"][entered] >= 1).all(), "a hit in a hierarchy with no box test"
     assert (stats["bytes"][hit] > 0).all(), "a hit that fetched nothing"
     assert stats["prim_tests"].sum() >= hit.sum()
     invalid = ~rays.valid()
