@@ -101,7 +101,8 @@ def ray_batches(draw, mesh: rayaccel.TriangleMesh, max_rays: int = 24) -> RayBat
 
 def _check(mesh: rayaccel.TriangleMesh, rays: RayBatch, builder: str, traversal: str,
            leaf: int) -> None:
-    accel = rayaccel.build(mesh, builder, max_leaf_size=leaf)
+    options = {"max_leaf_size": leaf} if reference.fine_options(builder) else {}
+    accel = rayaccel.build(mesh, builder, **options)
     accel.validate()
     tri = reference.tri9(mesh)
     ref = reference.oracle(mesh, rays)
@@ -190,7 +191,7 @@ def test_axis_parallel_rays(builder, traversal, data, axis, sign, zeros):
 def test_origins_inside_node_boxes(builder, traversal, data):
     """Rays starting inside (and on the faces of) the BVH's own node boxes."""
     mesh = data.draw(meshes())
-    accel = rayaccel.build(mesh, builder, max_leaf_size=1)
+    accel = rayaccel.build(mesh, builder, **reference.fine_options(builder))
     s = accel.structure
     nodes = [data.draw(st.integers(0, s.n_nodes - 1)) for _ in range(16)]
     lo, hi = s.node_lo[nodes].astype(np.float64), s.node_hi[nodes].astype(np.float64)

@@ -30,10 +30,8 @@ TRAVERSALS = [
     ("kdtree.restart", {}),
     ("kdtree.backtrack", {}),
     ("kdtree.short_stack", {}),
-    ("kdtree.ropes", {}),
-    ("kdtree.ropes", {"optimize": False}),
 ]
-STACKLESS = ["kdtree.restart", "kdtree.backtrack", "kdtree.short_stack", "kdtree.ropes"]
+STACKLESS = ["kdtree.restart", "kdtree.backtrack", "kdtree.short_stack"]
 
 
 def _ids(pairs):
@@ -252,12 +250,14 @@ def test_ropes_identical_to_stack(sphere_accels, optimize):
     accel = sphere_accels["kdtree.sah", ()]
     rays = reference.mixed_rays(accel.mesh, 700, seed=13)
     stack = accel.trace(rays, traversal="kdtree.stack")
-    ropes = accel.trace(rays, traversal="kdtree.ropes", optimize=optimize, stats=True)
+    # Not registered (a property test found a mismatch, issue 16): called directly.
+    from rayaccel.kdtree.traverse.ropes import KdRopesOptions, trace_kdtree_ropes
+
+    ropes = trace_kdtree_ropes(accel.structure, accel.mesh, rays, stats=True,
+                               options=KdRopesOptions(optimize=optimize))
     assert np.array_equal(stack.t, ropes.t)
     assert np.array_equal(stack.prim, ropes.prim)
     assert np.array_equal(stack.u, ropes.u)
-    info = accel.info()
-    assert info["bytes"] > accel.structure.nbytes()
 
 
 def test_stats_counters_consistent(sphere_accels):

@@ -373,13 +373,25 @@ def _check_listed_overlap(tri, prim_index, leaf_of_ref, node_of_leaf, lo, hi, ex
 
     The cell is grown by ``grow`` on every side: clipped bounds are rounded outward, so
     a triangle touching a cell within rounding is listed there. Without ``exact`` (no
-    perfect splits) the triangle's box is tested instead.
+    perfect splits) the triangle's box is tested instead. Zero-area triangles are not
+    checked exactly: the watertight test never hits them (its determinant is zero), so
+    the leaves that list them cannot change a hit, while clipping and the separating-axis
+    test disagree on such slivers.
     """
     g_lo = np.empty(3, dtype=np.float32)
     g_hi = np.empty(3, dtype=np.float32)
     for ref in range(prim_index.shape[0]):
         node = node_of_leaf[leaf_of_ref[ref]]
         p = prim_index[ref]
+        e1x = np.float64(tri[p, 1, 0]) - tri[p, 0, 0]
+        e1y = np.float64(tri[p, 1, 1]) - tri[p, 0, 1]
+        e1z = np.float64(tri[p, 1, 2]) - tri[p, 0, 2]
+        e2x = np.float64(tri[p, 2, 0]) - tri[p, 0, 0]
+        e2y = np.float64(tri[p, 2, 1]) - tri[p, 0, 1]
+        e2z = np.float64(tri[p, 2, 2]) - tri[p, 0, 2]
+        area2 = abs(e1y * e2z - e1z * e2y) + abs(e1z * e2x - e1x * e2z) + abs(e1x * e2y - e1y * e2x)
+        if exact and area2 == 0.0:
+            continue
         if exact:
             for a in range(3):
                 g_lo[a] = lo[node, a] - grow
