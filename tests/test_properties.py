@@ -186,7 +186,11 @@ def test_axis_parallel_rays(builder, traversal, data, axis, sign, zeros):
     _check(mesh, rays, builder, traversal, data.draw(st.sampled_from((1, 4))))
 
 
-@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+#: Node boxes are a bvh2 notion: origins inside them stress the hierarchy's box tests.
+BVH2_PAIRS = [p for p in PAIRS if reference.structure_of(p.values[0]) == "bvh2"]
+
+
+@pytest.mark.parametrize(("builder", "traversal"), BVH2_PAIRS)
 @given(data=st.data())
 def test_origins_inside_node_boxes(builder, traversal, data):
     """Rays starting inside (and on the faces of) the BVH's own node boxes."""
