@@ -33,14 +33,14 @@ TRAVERSALS = _traversal_params()
 QUERIES = [pytest.param(q, id=q) for q in ("closest", "any")]
 SCENES = scene_params(marks_slow_files=False)
 
-#: Scenes of over a million triangles: only the default builders' trees in the default tier
+#: Scenes of over a million triangles: only the default build key's tree in the default tier
 #: (every other build key is checked on the six smaller file scenes; ``--full`` adds
 #: these), which keeps CI's builds of ten trees over 1.4M triangles out of its budget.
 BIG_SCENES = ("kitchen",)
 
 
 def _cross_if_big(builder: str, scene: str) -> list:
-    big = scene in BIG_SCENES and not reference.is_default_builder(builder)
+    big = scene in BIG_SCENES and builder != registry.DEFAULT_BUILD_KEY
     return [pytest.mark.cross] if big else []
 
 
