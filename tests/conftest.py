@@ -191,3 +191,68 @@ def threads():
     before = numba.get_num_threads()
     yield numba.set_num_threads
     numba.set_num_threads(before)
+
+
+class _CompileLog:
+    """Seconds numba spends compiling, per kernel and per test (``RAYACCEL_COMPILE_LOG``).
+
+    Set ``RAYACCEL_COMPILE_LOG=FILE`` to write, at the end of the session, a JSON file of
+    the outermost compilations: seconds per kernel and per test. CI time is mostly
+    compilation on a cold cache; this says which kernels and which tests pay for it.
+    """
+
+    def __init__(self, path: str) -> None:
+        import numba.core.event as events
+
+        self.path = path
+        self.depth = 0
+        self.started = 0.0
+        self.test = "(collection)"
+        self.kernels: dict[str, float] = {}
+        self.tests: dict[str, float] = {}
+        log = self
+
+        class Listener(events.Listener):
+            def on_start(self, event) -> None:
+                if log.depth == 0:
+                    import time
+
+                    log.started = time.perf_counter()
+                log.depth += 1
+
+            def on_end(self, event) -> None:
+                import time
+
+                log.depth -= 1
+                if log.depth == 0:
+                    seconds = time.perf_counter() - log.started
+                    func = event.data["dispatcher"].py_func
+                    name = f"{func.__module__}.{func.__qualname__}"
+                    log.kernels[name] = log.kernels.get(name, 0.0) + seconds
+                    log.tests[log.test] = log.tests.get(log.test, 0.0) + seconds
+
+        events.register("numba:compile", Listener())
+
+    def write(self) -> None:
+        import json
+
+        def top(d: dict[str, float]) -> dict[str, float]:
+            return {k: round(v, 2) for k, v in sorted(d.items(), key=lambda kv: -kv[1])}
+
+        Path(self.path).write_text(json.dumps(
+            {"total": round(sum(self.kernels.values()), 1), "kernels": top(self.kernels),
+             "tests": top(self.tests)}, indent=1))
+
+
+_COMPILE_LOG = (_CompileLog(os.environ["RAYACCEL_COMPILE_LOG"])
+                if os.environ.get("RAYACCEL_COMPILE_LOG") else None)
+
+
+def pytest_runtest_logstart(nodeid: str, location: tuple) -> None:
+    if _COMPILE_LOG is not None:
+        _COMPILE_LOG.test = nodeid
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    if _COMPILE_LOG is not None:
+        _COMPILE_LOG.write()

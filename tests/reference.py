@@ -55,6 +55,23 @@ def is_core_pair(build_key: str, traversal: str) -> bool:
     return is_default_builder(build_key) or traversal == registry.default_traversal(structure)
 
 
+def parallel_variants(traversal: str, full: bool) -> list[tuple[str, bool]]:
+    """``(query, stats)`` variants whose parallel kernels a test compiles for ``traversal``.
+
+    A traversal's parallel kernels differ from its serial ones only in the shared chunk
+    skeleton, and each costs tens of seconds to compile on a cold cache. The default
+    tier compiles all four for each structure's default traversal and the plain
+    closest-hit one for the others; ``--full`` compiles all four everywhere.
+    """
+    from rayaccel import registry
+
+    every = [(q, s) for q in ("closest", "any") for s in (False, True)]
+    structure = traversal.split(".")[0]
+    if full or traversal == registry.default_traversal(structure):
+        return every
+    return [("closest", False)]
+
+
 def fine_options(build_key: str) -> dict:
     """Options that make ``build_key``'s structure as fine as it goes, for stress tests:
     one primitive per leaf for hierarchies (``max_leaf_size=1``); none for grids."""

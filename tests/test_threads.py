@@ -55,7 +55,7 @@ def test_build_identical_for_1_and_2_threads(threads, builder, scene):
 
 @needs_two_threads
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
-def test_trace_identical_for_1_and_2_threads(threads, scenes_cache, builder, traversal):
+def test_trace_identical_for_1_and_2_threads(threads, scenes_cache, full, builder, traversal):
     accel = scenes_cache.accel(builder, "teapot")
     lo, hi = accel.mesh.bounds()
     rays = reference.concat(reference.rays_inside(lo, hi, 3000, seed=1),
@@ -64,7 +64,7 @@ def test_trace_identical_for_1_and_2_threads(threads, scenes_cache, builder, tra
     for n in (1, 2):
         threads(n)
         run = [accel.trace(rays, query=q, traversal=traversal, stats=s)
-               for q in ("closest", "any") for s in (False, True)]
+               for q, s in reference.parallel_variants(traversal, full)]
         results.append(run)
     for a, b in zip(*results, strict=True):
         reference.assert_hits_identical(a, b, "1 vs 2 threads")
@@ -75,7 +75,7 @@ def test_trace_identical_for_1_and_2_threads(threads, scenes_cache, builder, tra
 
 CONCURRENT_SCRIPT = textwrap.dedent(
     """
-    import sys
+    import dataclasses
     from concurrent.futures import ThreadPoolExecutor
 
     import numba
@@ -94,9 +94,11 @@ CONCURRENT_SCRIPT = textwrap.dedent(
         o = lo + rng.random((n, 3)) * (hi - lo)
         d = rng.normal(size=(n, 3))
         batches.append(RayBatch(o, d))
-    for builder in registry.keys("builder"):
+    # The launch machinery is family-neutral: each structure's default tree, every traversal.
+    for structure in registry.structures():
+        builder = registry.default_builder(structure)
         accel = rayaccel.build(mesh, builder)
-        for traversal in registry.keys("traversal", registry.get(builder).structure):
+        for traversal in registry.keys("traversal", structure):
             expected = [accel.trace(b, traversal=traversal) for b in batches]
             blocked = [accel.occluded(b.origin, b.direction, traversal=traversal)
                        for b in batches]
@@ -123,7 +125,11 @@ CONCURRENT_SCRIPT = textwrap.dedent(
         # Builds from several threads at once.
         with ThreadPoolExecutor(4) as pool:
             trees = list(pool.map(lambda _: rayaccel.build(mesh, builder).structure, range(4)))
-        assert all(np.array_equal(t.node_lo, trees[0].node_lo) for t in trees)
+        for t in trees[1:]:
+            for field in dataclasses.fields(t):
+                value = getattr(t, field.name)
+                if isinstance(value, np.ndarray):
+                    assert np.array_equal(value, getattr(trees[0], field.name)), field.name
     print("OK", numba.threading_layer())
     """
 )
@@ -171,8 +177,12 @@ def _kernel_dispatchers():
     return found
 
 
-def test_signature_discipline():
-    """Float64, int, Fortran and strided inputs are coerced: one signature per kernel."""
+def test_signature_discipline(full):
+    """Float64, int, Fortran and strided inputs are coerced: one signature per kernel.
+
+    Inputs are coerced before any kernel, so the parallel batch size runs through each
+    structure's default traversal (and every traversal with ``--full``).
+    """
     from rayaccel.bvh.traverse.stack import trace_kernel
     from rayaccel.trace.run import PARALLEL_MIN_RAYS
 
@@ -192,6 +202,9 @@ def test_signature_discipline():
                       (np.repeat(o, 2, axis=0)[::2], d.astype(np.float32), 0.0, 1e30)]
             for origin, direction, tmin, tmax in inputs:
                 for traversal in registry.keys("traversal", accel.structure_name):
+                    if n >= PARALLEL_MIN_RAYS and not (
+                            full or traversal == registry.default_traversal(accel.structure_name)):
+                        continue
                     for query, stats in itertools.product(("closest", "any"), (False, True)):
                         accel.trace(RayBatch(origin, direction, tmin, tmax), query=query,
                                     traversal=traversal, stats=stats)

@@ -50,7 +50,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, KdTree, max_depth_for
 from rayaccel.kernels.clip import clip_triangle_box, polygon_bounds
@@ -144,9 +144,9 @@ def build_sweep(mesh: TriangleMesh, params: SweepParams) -> KdTree:
     )
 
 
-@cpu_kernel()
+@cpu_inline
 def _grow_f(a, need):
-    """Return ``a`` or a copy at least ``need`` long (doubling)."""
+    """Return ``a`` or a copy at least ``need`` long (doubling); inlined, for any dtype."""
     if need <= a.shape[0]:
         return a
     b = np.empty(max(need, 2 * a.shape[0]), dtype=a.dtype)
