@@ -36,7 +36,7 @@ LAYERS: dict[str, int] = {
     "bvh": 4, "kdtree": 4, "grid": 4,
     "cuda": 5,
     "registry": 6, "metrics": 6,
-    "api": 7,
+    "api": 7, "precompile": 7,
     "render": 8, "bench": 8,
     "cli": 9,
 }

@@ -37,7 +37,7 @@ from typing import Any
 import numba
 from llvmlite import ir
 from numba.core import cgutils, serialize, types
-from numba.core.caching import FunctionCache
+from numba.core.caching import FunctionCache, IndexDataCacheFile
 from numba.core.dispatcher import Dispatcher
 from numba.core.errors import NumbaPerformanceWarning
 from numba.extending import intrinsic
@@ -82,13 +82,27 @@ def _stable_function(func: Callable[..., Any]) -> tuple[Any, ...]:
 
 
 class StableClosureCache(FunctionCache):  # type: ignore[misc]
-    """numba's on-disk function cache, keyed by :func:`_stable_cell` for closure cells."""
+    """numba's on-disk function cache, keyed by :func:`_stable_cell` for closure cells.
+
+    Each closure also gets its own index and data files (numba names them after the
+    factory's source line, shared by every kernel the factory makes). numba updates an
+    index by reading, editing and rewriting it, so processes that compile different
+    kernels of one factory at once (``rayaccel cache warm --jobs``, pytest-xdist)
+    would otherwise drop each other's entries or pick the same data-file number.
+    """
+
+    def __init__(self, py_func: Callable[..., Any]) -> None:
+        super().__init__(py_func)
+        self._cells = hashlib.sha256(serialize.dumps(_stable_function(py_func)[2])).hexdigest()
+        self._cache_file = IndexDataCacheFile(
+            cache_path=self._cache_path,
+            filename_base=f"{self._impl.filename_base}-{self._cells[:16]}",
+            source_stamp=self._impl.locator.get_source_stamp(),
+        )
 
     def _index_key(self, sig: Any, codegen: Any) -> Any:
-        func = self._py_func
-        code = hashlib.sha256(func.__code__.co_code).hexdigest()
-        cells = hashlib.sha256(serialize.dumps(_stable_function(func)[2])).hexdigest()
-        return (sig, codegen.magic_tuple(), (code, cells))
+        code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
+        return (sig, codegen.magic_tuple(), (code, self._cells))
 
 
 #: ``parallel=`` options that run numba's parfor pipeline only for its IR clean-up (copy

@@ -9,7 +9,8 @@
     rayaccel bench SCENE ... [--accel KEY ... | all] [--rays primary,diffuse,shadow]
                    [--threads N[,M]] [--peers embree,open3d,trimesh|all|none]
                    [--repeats K] [--json results.jsonl] [--validate N]
-    rayaccel cache clear
+    rayaccel cache clear|info
+    rayaccel cache warm [--structure NAME ...] [--jobs N] [--serial-only]
 
 ``SCENE`` is a catalog name (``rayaccel list`` shows them; file scenes are found
 through ``RAYACCEL_SCENE_PATH``) or the path of a scene file. Choices of builders,
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import os
 import sys
 import traceback
 import warnings
@@ -399,8 +401,11 @@ def _print_bench(records: list[dict[str, Any]], notes: list[str], *, markdown: b
 
 
 def cmd_cache(args: argparse.Namespace) -> int:
-    """Show or clear numba's on-disk cache of rayaccel kernels."""
+    """Show, clear or fill numba's on-disk cache of rayaccel kernels."""
     from rayaccel.bench.harness import numba_cache_dirs, numba_cache_files
+
+    if args.action == "warm":
+        return _warm_cache(args)
 
     files = numba_cache_files()
     size = sum(p.stat().st_size for p in files if p.exists())
@@ -418,6 +423,23 @@ def cmd_cache(args: argparse.Namespace) -> int:
         except FileNotFoundError:
             continue
     _out(f"removed {removed} numba cache files ({size / 2**20:.1f} MiB) from {where or 'nothing'}")
+    return 0
+
+
+def _warm_cache(args: argparse.Namespace) -> int:
+    """Compile every build key and traversal kernel into the cache, ``--jobs`` at a time."""
+    from rayaccel import precompile
+
+    todo = precompile.jobs(args.structure, parallel=not args.serial_only)
+    total = len(todo)
+    _out(f"compiling {total} kernel groups on {args.jobs} processes")
+
+    def done(job: precompile.Job, seconds: float, k: int) -> None:
+        if not args.quiet:
+            _out(f"[{k}/{total}] {job.name}: {seconds:.1f} s")
+
+    wall = precompile.precompile(todo, args.jobs, on_done=done)
+    _out(f"cache warm: {total} jobs in {wall:.0f} s")
     return 0
 
 
@@ -546,7 +568,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("cache", parents=[common], help="numba's cache of compiled kernels")
-    p.add_argument("action", choices=("clear", "info"))
+    p.add_argument("action", choices=("clear", "info", "warm"),
+                   help="warm: compile every kernel ahead of its first call")  # fmt: skip
+    p.add_argument("--structure", action="append",
+                   help="warm only this structure's kernels (repeatable)")  # fmt: skip
+    p.add_argument("--jobs", type=_positive_int, default=os.cpu_count() or 1,
+                   help="worker processes for warm (default: one per core)")  # fmt: skip
+    p.add_argument("--serial-only", action="store_true",
+                   help="warm: skip the parallel kernels (batches of 4096 rays and more)")
+    p.add_argument("--quiet", action="store_true", help="warm: no line per job")
     p.set_defaults(func=cmd_cache)
     return parser
 

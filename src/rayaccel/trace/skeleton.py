@@ -45,10 +45,48 @@ RAY_CHUNK = 64
 
 
 @functools.cache
+def chunk_worker(make_scratch: Any, trace_rays: Any, query: int, with_stats: bool) -> Any:
+    """Return the serial kernel one worker runs: take chunks from ``counter`` until none is left.
+
+    ``worker(layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v,
+    counters, counter) -> n_overflowed`` makes the worker's scratch once, then runs the
+    traversal's body on the chunks it takes from the shared ``counter``
+    (:func:`rayaccel._work.next_item`).
+    """
+
+    @cpu_kernel()
+    def worker(
+        layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, counter
+    ):
+        _ = (query, with_stats)
+        overflow = 0
+        n_rays = origin.shape[0]
+        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
+        scratch = make_scratch(layout)
+        while True:
+            chunk = next_item(counter, n_chunks)
+            if chunk < 0:
+                break
+            overflow += trace_rays(
+                layout, scratch, origin, direction, tmin, tmax,
+                chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK),
+                hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+            )  # fmt: skip
+        return overflow
+
+    return worker
+
+
+@functools.cache
 def trace_kernel(
     make_scratch: Any, trace_rays: Any, query: int, with_stats: bool, parallel: bool
 ) -> Any:
     """Return the kernel running ``trace_rays`` over every ray for one compile-time variant.
+
+    The serial and the parallel kernel of a variant both call one compiled
+    :func:`chunk_worker` (a call per worker, not per ray): the parallel kernel is a
+    ``prange`` over workers around that call, so it compiles in a second instead of
+    running numba's parallel passes over the whole inlined traversal again.
 
     Parameters
     ----------
@@ -69,27 +107,21 @@ def trace_kernel(
         with stats and a ``(0, N_COUNTERS)`` placeholder without; ``n_threads`` is
         ``numba.get_num_threads()`` read by the caller.
     """
+    worker = chunk_worker(make_scratch, trace_rays, query, with_stats)
 
     @cpu_kernel(parallel=parallel)
     def kernel(
         layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
     ):
-        _ = (query, with_stats, parallel)
+        _ = parallel
         overflow = 0
-        n_rays = origin.shape[0]
-        n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
+        n_chunks = (origin.shape[0] + RAY_CHUNK - 1) // RAY_CHUNK
         counter = new_counter()
         for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
-            scratch = make_scratch(layout)
-            while True:
-                chunk = next_item(counter, n_chunks)
-                if chunk < 0:
-                    break
-                overflow += trace_rays(
-                    layout, scratch, origin, direction, tmin, tmax,
-                    chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK),
-                    hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
-                )  # fmt: skip
+            overflow += worker(
+                layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v,
+                counters, counter,
+            )  # fmt: skip
         return overflow
 
     return kernel

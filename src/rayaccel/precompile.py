@@ -1,0 +1,171 @@
+"""Compile kernels ahead of their first call, in parallel processes (layer 7).
+
+numba compiles a kernel on its first call and keeps the machine code in the on-disk
+cache (:mod:`rayaccel._jit`). One traversal kernel takes several seconds to compile (a
+parallel one tens of seconds on a laptop core), and a traversal has eight of them
+(closest or any hit, with or without statistics, serial or parallel), so a cold cache
+makes the first query of each kind slow. compilation holds the interpreter lock, so
+one process compiles one kernel at a time; :func:`precompile` spreads the kernels over
+worker processes, each writing its kernels into the shared cache, where every later
+process loads them in milliseconds. ``rayaccel cache warm`` is its command line;
+``make test`` runs it before the suite.
+
+A :class:`Job` names one build key (compiling its builder, its build steps and the
+structure's validation) or one traversal kernel (traversal, query, statistics,
+serial or parallel), run on a small procedural mesh.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from typing import Any
+
+import numpy as np
+
+from rayaccel import api, registry
+from rayaccel.errors import UnknownVariantError
+from rayaccel.queries import QUERY_KINDS
+from rayaccel.rays.batch import RayBatch
+from rayaccel.scene import procedural
+from rayaccel.trace.run import PARALLEL_MIN_RAYS
+
+#: Triangles of the mesh every job builds (enough for a few tree levels).
+MESH_TRIANGLES = 600
+#: Rays of a serial job (a parallel job traces :data:`PARALLEL_MIN_RAYS`).
+SERIAL_RAYS = 16
+
+
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """One unit of compilation: a build key, or one traversal kernel.
+
+    ``traversal`` is None for a build job; otherwise ``build_key`` is the tree the
+    traversal runs on and ``query``/``stats``/``parallel`` pick the kernel.
+    """
+
+    build_key: str
+    traversal: str | None = None
+    query: str = "closest"
+    stats: bool = False
+    parallel: bool = False
+
+    @property
+    def name(self) -> str:
+        """Return a short label, e.g. ``bvh2.stack closest+stats parallel``."""
+        if self.traversal is None:
+            return f"build {self.build_key}"
+        kind = self.query + ("+stats" if self.stats else "")
+        return f"{self.traversal} {kind} {'parallel' if self.parallel else 'serial'}"
+
+
+def jobs(
+    structures: Iterable[str] | None = None,
+    *,
+    parallel: bool = True,
+    variant_filter: Callable[[str, str, bool], bool] | None = None,
+) -> list[Job]:
+    """Return the jobs that compile every build key and traversal kernel of ``structures``.
+
+    Parameters
+    ----------
+    structures : iterable of str, optional
+        Structure names (``bvh2``, ``kdtree``, ``grid``); every registered one by default.
+    parallel : bool
+        Include the parallel traversal kernels (those a batch of
+        :data:`rayaccel.trace.run.PARALLEL_MIN_RAYS` rays or more runs).
+    variant_filter : callable, optional
+        ``variant_filter(traversal, query, stats) -> bool`` keeps a parallel kernel;
+        serial kernels are always kept.
+
+    Returns
+    -------
+    list of Job
+        Parallel kernels first (they take longest), then serial ones, then builds.
+    """
+    names = list(structures) if structures is not None else registry.structures()
+    unknown = sorted(set(names) - set(registry.structures()))
+    if unknown:
+        raise UnknownVariantError(
+            f"unknown structure(s) {', '.join(unknown)} "
+            f"(known: {', '.join(registry.structures())})"
+        )
+    heavy: list[Job] = []
+    light: list[Job] = []
+    builds = [Job(key) for key in registry.build_keys()
+              if registry.get_chain(key)[0].structure in names]  # fmt: skip
+    for structure in names:
+        tree = registry.default_builder(structure)
+        for traversal in registry.keys("traversal", structure):
+            for query in QUERY_KINDS:
+                for stats in (False, True):
+                    light.append(Job(tree, traversal, query, stats, parallel=False))
+                    keep = variant_filter is None or variant_filter(traversal, query, stats)
+                    if parallel and keep:
+                        heavy.append(Job(tree, traversal, query, stats, parallel=True))
+    return heavy + light + builds
+
+
+_MESH: list[Any] = []
+_ACCELS: dict[str, api.Accel] = {}
+
+
+def _accel(build_key: str) -> api.Accel:
+    """Build (once per worker process) ``build_key``'s structure on the job mesh."""
+    if not _MESH:
+        _MESH.append(procedural.triangle_soup(MESH_TRIANGLES, seed=1))
+    if build_key not in _ACCELS:
+        _ACCELS[build_key] = api.build(_MESH[0], build_key)
+    return _ACCELS[build_key]
+
+
+def run_job(job: Job) -> tuple[Job, float]:
+    """Run one job in this process; return it with its seconds."""
+    start = time.perf_counter()
+    accel = _accel(job.build_key)
+    if job.traversal is None:
+        accel.validate()
+    else:
+        n = PARALLEL_MIN_RAYS if job.parallel else SERIAL_RAYS
+        rng = np.random.Generator(np.random.PCG64(3))
+        origin = rng.uniform(-0.5, 1.5, (n, 3))
+        target = rng.uniform(0.0, 1.0, (n, 3))
+        accel.trace(RayBatch(origin, target - origin), query=job.query,
+                    traversal=job.traversal, stats=job.stats)  # fmt: skip
+    return job, time.perf_counter() - start
+
+
+def precompile(
+    job_list: list[Job],
+    n_processes: int | None = None,
+    on_done: Callable[[Job, float, int], None] | None = None,
+) -> float:
+    """Run ``job_list`` on ``n_processes`` worker processes; return the wall seconds.
+
+    Each worker writes what it compiles into the on-disk cache, so the calling
+    process (and every later one) loads those kernels instead of compiling them.
+    Workers are spawned, not forked: a fork would copy numba's thread pools.
+    ``on_done(job, seconds, n_done)`` is called as each job finishes.
+    """
+    n = n_processes or os.cpu_count() or 1
+    if n < 1:
+        raise ValueError(f"n_processes must be at least 1, got {n}")
+    start = time.perf_counter()
+    if n == 1 or len(job_list) <= 1:
+        for k, job in enumerate(job_list, 1):
+            _, seconds = run_job(job)
+            if on_done is not None:
+                on_done(job, seconds, k)
+        return time.perf_counter() - start
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=n, mp_context=context) as pool:
+        futures = [pool.submit(run_job, job) for job in job_list]
+        for k, future in enumerate(as_completed(futures), 1):
+            job, seconds = future.result()
+            if on_done is not None:
+                on_done(job, seconds, k)
+    return time.perf_counter() - start
