@@ -1,10 +1,10 @@
 """Compile kernels ahead of their first call, in parallel processes (layer 7).
 
 numba compiles a kernel on its first call and keeps the machine code in the on-disk
-cache (:mod:`rayaccel._jit`). One traversal kernel takes several seconds to compile (a
-parallel one tens of seconds on a laptop core), and a traversal has eight of them
-(closest or any hit, with or without statistics, serial or parallel), so a cold cache
-makes the first query of each kind slow. compilation holds the interpreter lock, so
+cache (:mod:`rayaccel._jit`). One traversal's chunk worker takes ten to forty seconds
+to compile on a laptop core, and a traversal has four of them (closest or any hit,
+with or without statistics), each run by a serial and a parallel kernel, so a cold cache
+makes the first query of each kind slow. Compilation holds the interpreter lock, so
 one process compiles one kernel at a time; :func:`precompile` spreads the kernels over
 worker processes, each writing its kernels into the shared cache, where every later
 process loads them in milliseconds. ``rayaccel cache warm`` is its command line;
@@ -85,7 +85,8 @@ def jobs(
     Returns
     -------
     list of Job
-        Parallel kernels first (they take longest), then serial ones, then builds.
+        Serial kernels first (each compiles its traversal's chunk worker, the slow
+        part), then the parallel ones (a ``prange`` around that worker), then builds.
     """
     names = list(structures) if structures is not None else registry.structures()
     unknown = sorted(set(names) - set(registry.structures()))
@@ -94,8 +95,8 @@ def jobs(
             f"unknown structure(s) {', '.join(unknown)} "
             f"(known: {', '.join(registry.structures())})"
         )
-    heavy: list[Job] = []
-    light: list[Job] = []
+    serial: list[Job] = []
+    parallel_jobs: list[Job] = []
     builds = [Job(key) for key in registry.build_keys()
               if registry.get_chain(key)[0].structure in names]  # fmt: skip
     for structure in names:
@@ -103,11 +104,11 @@ def jobs(
         for traversal in registry.keys("traversal", structure):
             for query in QUERY_KINDS:
                 for stats in (False, True):
-                    light.append(Job(tree, traversal, query, stats, parallel=False))
+                    serial.append(Job(tree, traversal, query, stats, parallel=False))
                     keep = variant_filter is None or variant_filter(traversal, query, stats)
                     if parallel and keep:
-                        heavy.append(Job(tree, traversal, query, stats, parallel=True))
-    return heavy + light + builds
+                        parallel_jobs.append(Job(tree, traversal, query, stats, parallel=True))
+    return serial + parallel_jobs + builds
 
 
 _MESH: list[Any] = []

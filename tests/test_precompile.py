@@ -1,0 +1,71 @@
+"""Ahead-of-time compilation: the job list, worker processes, and a cache later processes load."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from rayaccel import precompile, registry
+from rayaccel.errors import UnknownVariantError
+
+
+def test_jobs_cover_every_kernel_variant():
+    todo = precompile.jobs()
+    kernels = {(j.traversal, j.query, j.stats, j.parallel) for j in todo if j.traversal}
+    for structure in registry.structures():
+        for traversal in registry.keys("traversal", structure):
+            for query in ("closest", "any"):
+                for stats in (False, True):
+                    for parallel in (False, True):
+                        assert (traversal, query, stats, parallel) in kernels
+    assert {j.build_key for j in todo if j.traversal is None} == set(registry.build_keys())
+    # Serial jobs (which compile the chunk workers) come before the parallel ones.
+    first_parallel = next(i for i, j in enumerate(todo) if j.parallel)
+    assert all(j.traversal and not j.parallel for j in todo[:first_parallel])
+
+
+def test_jobs_filters():
+    grid = precompile.jobs(["grid"], parallel=False)
+    assert grid and all(registry.get_chain(j.build_key)[0].structure == "grid" for j in grid)
+    assert not any(j.parallel for j in grid)
+    only_closest = precompile.jobs(["kdtree"], variant_filter=lambda t, q, s: q == "closest")
+    assert {j.query for j in only_closest if j.parallel} == {"closest"}
+    with pytest.raises(UnknownVariantError, match="octree"):
+        precompile.jobs(["octree"])
+
+
+LOAD_SCRIPT = textwrap.dedent(
+    """
+    import numba.core.event as events
+    from rayaccel import precompile
+
+    compiled = []
+
+    class Listener(events.Listener):
+        def on_start(self, event):
+            compiled.append(event.data["dispatcher"].py_func.__qualname__)
+
+        def on_end(self, event):
+            pass
+
+    events.register("numba:compile", Listener())
+    for job in precompile.jobs(["grid"], variant_filter=lambda t, q, s: not s)[:{n}]:
+        precompile.run_job(job)
+    print("compiled:", compiled)
+    """
+)
+
+
+def test_a_process_after_precompile_compiles_nothing():
+    """Kernels compiled by two worker processes load, uncompiled, in a third process."""
+    todo = precompile.jobs(["grid"], variant_filter=lambda t, q, s: not s)[:6]
+    done = []
+    precompile.precompile(todo, 2, on_done=lambda job, s, k: done.append(job))
+    assert sorted(done, key=repr) == sorted(todo, key=repr)
+    proc = subprocess.run([sys.executable, "-c", LOAD_SCRIPT.replace("{n}", "6")],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "compiled: []" in proc.stdout, proc.stdout
