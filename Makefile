@@ -43,7 +43,9 @@ demo: $(STAMP) system-deps
 	$(BIN)/rayaccel render $(DEMO_SCENE) --accel $(DEMO_BUILDER) --view shade -o $(OUT)/demo-shade.png
 	@echo "demo outputs in $(OUT)/"
 
+# Kernels compile on every core first (`rayaccel cache warm`); the suite then loads them.
 test: $(STAMP) system-deps
+	$(BIN)/rayaccel cache warm --quiet
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP) system-deps
