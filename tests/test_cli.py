@@ -6,7 +6,7 @@ import numba
 import pytest
 from PIL import Image
 
-from rayaccel import registry
+from rayaccel import precompile, registry
 from rayaccel.cli import main, parse_options
 from rayaccel.counters import COUNTER_NAMES
 from rayaccel.errors import InvalidInputError
@@ -123,6 +123,20 @@ def test_cache_clear_removes_only_numba_files(capsys, tmp_path, monkeypatch):
     assert code == 0
     assert "removed 3" in out
     assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == ["keep.py"]
+
+
+def test_cache_warm_runs_each_job_and_names_bad_structures(capsys):
+    code, out, _ = run(capsys, "cache", "warm", "--structure", "grid", "--serial-only",
+                       "--jobs", "1")
+    assert code == 0
+    n_jobs = len(precompile.jobs(["grid"], parallel=False))
+    assert f"compiling {n_jobs} kernel groups" in out
+    assert f"[{n_jobs}/{n_jobs}]" in out
+    assert "grid.dda any+stats serial" in out
+    code, _, err = run(capsys, "cache", "warm", "--structure", "octree")
+    assert code == 1
+    assert "octree" in err
+    assert "grid" in err
 
 
 def test_python_dash_m():
