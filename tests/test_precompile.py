@@ -29,7 +29,8 @@ def test_jobs_cover_every_kernel_variant():
 
 def test_jobs_filters():
     grid = precompile.jobs(["grid"], parallel=False)
-    assert grid and all(registry.get_chain(j.build_key)[0].structure == "grid" for j in grid)
+    assert grid
+    assert all(registry.get_chain(j.build_key)[0].structure == "grid" for j in grid)
     assert not any(j.parallel for j in grid)
     only_closest = precompile.jobs(["kdtree"], variant_filter=lambda t, q, s: q == "closest")
     assert {j.query for j in only_closest if j.parallel} == {"closest"}
