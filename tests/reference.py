@@ -58,10 +58,11 @@ def is_core_pair(build_key: str, traversal: str) -> bool:
 def parallel_variants(traversal: str, full: bool) -> list[tuple[str, bool]]:
     """``(query, stats)`` variants whose parallel kernels a test compiles for ``traversal``.
 
-    A traversal's parallel kernels differ from its serial ones only in the shared chunk
-    skeleton, and each costs tens of seconds to compile on a cold cache. The default
-    tier compiles all four for each structure's default traversal and the plain
-    closest-hit one for the others; ``--full`` compiles all four everywhere.
+    A traversal's parallel kernels differ from its serial ones only in the ``prange``
+    around the shared chunk worker (:mod:`rayaccel.trace.skeleton`), and each still
+    costs a few seconds to compile on a cold cache. The default tier runs all four for
+    each structure's default traversal and the plain closest-hit one for the others;
+    ``--full`` runs all four everywhere.
     """
     from rayaccel import registry
 

@@ -2,8 +2,9 @@
 
 numba compiles a kernel on its first call and keeps the machine code in the on-disk
 cache (:mod:`rayaccel._jit`). One traversal's chunk worker takes ten to forty seconds
-to compile on a laptop core, and a traversal has four of them (closest or any hit,
-with or without statistics), each run by a serial and a parallel kernel, so a cold cache
+to compile on a laptop core, and a traversal has two of them (with and without
+statistics), each run by four small kernels (closest or any hit, serial or parallel),
+so a cold cache
 makes the first query of each kind slow. Compilation holds the interpreter lock, so
 one process compiles one kernel at a time; :func:`precompile` spreads the kernels over
 worker processes, each writing its kernels into the shared cache, where every later
@@ -99,10 +100,12 @@ def jobs(
     parallel_jobs: list[Job] = []
     builds = [Job(key) for key in registry.build_keys()
               if registry.get_chain(key)[0].structure in names]  # fmt: skip
-    for structure in names:
-        tree = registry.default_builder(structure)
-        for traversal in registry.keys("traversal", structure):
-            for query in QUERY_KINDS:
+    # Query-major order: the closest and any-hit kernels of one statistics variant call
+    # one chunk worker, so two processes never start on the same worker at once.
+    for query in QUERY_KINDS:
+        for structure in names:
+            tree = registry.default_builder(structure)
+            for traversal in registry.keys("traversal", structure):
                 for stats in (False, True):
                     serial.append(Job(tree, traversal, query, stats, parallel=False))
                     keep = variant_filter is None or variant_filter(traversal, query, stats)

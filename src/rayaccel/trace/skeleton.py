@@ -20,8 +20,9 @@ A traversal module supplies two inline functions (``rayaccel._jit.cpu_inline``):
     ``counters[r]`` (``Counter`` columns).
 
 Both are inlined into the kernel at numba IR level, so the compiled code is the code
-of a hand-written loop. ``query`` and ``with_stats`` reach the body as the kernel's
-compile-time constants, and LLVM removes the branches they rule out. The body takes a
+of a hand-written loop. ``with_stats`` reaches the body as a compile-time constant,
+and LLVM removes the counter updates when it is off; ``query`` is a run-time value
+that the body tests only once it has a hit. The body takes a
 chunk rather than one ray because every array an inlined function receives or unpacks
 is reference-counted on entry and exit: once per ray that is a dozen atomic updates
 of counts that every thread shares, which cost ``bvh2.stack`` a third of its speed on
@@ -45,20 +46,23 @@ RAY_CHUNK = 64
 
 
 @functools.cache
-def chunk_worker(make_scratch: Any, trace_rays: Any, query: int, with_stats: bool) -> Any:
+def chunk_worker(make_scratch: Any, trace_rays: Any, with_stats: bool) -> Any:
     """Return the serial kernel one worker runs: take chunks from ``counter`` until none is left.
 
     ``worker(layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v,
-    counters, counter) -> n_overflowed`` makes the worker's scratch once, then runs the
-    traversal's body on the chunks it takes from the shared ``counter``
-    (:func:`rayaccel._work.next_item`).
+    counters, counter, query) -> n_overflowed`` makes the worker's scratch once, then
+    runs the traversal's body on the chunks it takes from the shared ``counter``
+    (:func:`rayaccel._work.next_item`). ``query`` is a run-time argument: a body tests
+    it only where it finds a hit, and one worker per statistics variant halves what a
+    traversal compiles (see ``docs/performance.md``, Compile time).
     """
 
     @cpu_kernel()
     def worker(
-        layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, counter
-    ):
-        _ = (query, with_stats)
+        layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, counter,
+        query,
+    ):  # fmt: skip
+        _ = with_stats
         overflow = 0
         n_rays = origin.shape[0]
         n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
@@ -107,20 +111,20 @@ def trace_kernel(
         with stats and a ``(0, N_COUNTERS)`` placeholder without; ``n_threads`` is
         ``numba.get_num_threads()`` read by the caller.
     """
-    worker = chunk_worker(make_scratch, trace_rays, query, with_stats)
+    worker = chunk_worker(make_scratch, trace_rays, with_stats)
 
     @cpu_kernel(parallel=parallel)
     def kernel(
         layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
     ):
-        _ = parallel
+        _ = (query, parallel)
         overflow = 0
         n_chunks = (origin.shape[0] + RAY_CHUNK - 1) // RAY_CHUNK
         counter = new_counter()
         for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
             overflow += worker(
                 layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v,
-                counters, counter,
+                counters, counter, query,
             )  # fmt: skip
         return overflow
 
