@@ -85,6 +85,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.kdtree.traverse.restart",
     "rayaccel.kdtree.traverse.backtrack",
     "rayaccel.kdtree.traverse.short_stack",
+    "rayaccel.kdtree.traverse.ropes",
     "rayaccel.grid.builders.uniform",
     "rayaccel.grid.builders.skip",
     "rayaccel.grid.builders.two_level",

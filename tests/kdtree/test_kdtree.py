@@ -30,8 +30,10 @@ TRAVERSALS = [
     ("kdtree.restart", {}),
     ("kdtree.backtrack", {}),
     ("kdtree.short_stack", {}),
+    ("kdtree.ropes", {}),
+    ("kdtree.ropes", {"optimize": False}),
 ]
-STACKLESS = ["kdtree.restart", "kdtree.backtrack", "kdtree.short_stack"]
+STACKLESS = ["kdtree.restart", "kdtree.backtrack", "kdtree.short_stack", "kdtree.ropes"]
 
 
 def _ids(pairs):
@@ -250,14 +252,75 @@ def test_ropes_identical_to_stack(sphere_accels, optimize):
     accel = sphere_accels["kdtree.sah", ()]
     rays = reference.mixed_rays(accel.mesh, 700, seed=13)
     stack = accel.trace(rays, traversal="kdtree.stack")
-    # Not registered (a property test found a mismatch, issue 16): called directly.
-    from rayaccel.kdtree.traverse.ropes import KdRopesOptions, trace_kdtree_ropes
-
-    ropes = trace_kdtree_ropes(accel.structure, accel.mesh, rays, stats=True,
-                               options=KdRopesOptions(optimize=optimize))
+    ropes = accel.trace(rays, traversal="kdtree.ropes", optimize=optimize, stats=True)
     assert np.array_equal(stack.t, ropes.t)
     assert np.array_equal(stack.prim, ropes.prim)
     assert np.array_equal(stack.u, ropes.u)
+    info = accel.info()
+    assert info["bytes"] > accel.structure.nbytes()
+
+
+def _quadrant_mesh() -> rayaccel.TriangleMesh:
+    """A triangle touching the edge ``{x = 0, z = 1}`` with its vertex ``(0, 0, 1)`` from
+    the cell ``x < 0, z > 1``, and thin triangles at ``y >= 0.3`` filling the four cells
+    around that edge so the SAH splits at ``z = 1`` and ``x = 0``."""
+    tris = [[[0, 0, 1], [-1, 0, 2], [-1, 0.5, 1]]]
+    for x0, x1 in ((-1, 0), (0, 1)):
+        for z0, z1 in ((0, 1), (1, 2)):
+            for k in range(4):
+                a = x0 + (x1 - x0) * k / 4
+                b = x0 + (x1 - x0) * (k + 1) / 4
+                tris.append([[a, 0.3, z0], [b, 0.5, z0], [a, 0.4, z1]])
+    v = np.array(tris, dtype=np.float64).reshape(-1, 3)
+    return rayaccel.TriangleMesh(v, np.arange(len(v)).reshape(-1, 3))
+
+
+@pytest.mark.parametrize("optimize", [True, False])
+def test_ropes_find_hits_on_edges_and_corners(optimize):
+    """Regression (issue 16): ``kdtree.ropes`` lost hits where the ray leaves a leaf
+    through an edge or a corner. One rope leads to one neighbour, so a cell the ray only
+    touches at the edge was never visited, nor a cell behind a null rope chosen on an
+    exact tie with the scene boundary, and a cell beginning exactly at the end of the
+    segment was cut (``>=``); a triangle touching that edge, listed only there (perfect
+    splits), was missed. The stack and the oracle hit it."""
+    cases = []
+    # (1) Through an interior edge where four cells meet; the hit cell is only touched.
+    p = np.array([0.0, 0.0, 1.0])
+    d = np.array([[1, 0.25, 1], [1, -0.25, 1], [1, 0.125, 1], [2, 0.25, 1], [1, 0.25, 2],
+                  [1, 0, 1], [-1, 0.25, -1]], dtype=np.float64)
+    cases.append((_quadrant_mesh(), RayBatch(p - d, d)))
+    # (2) Through a corner of the scene box: x and y faces (null ropes) tie with the
+    # split z = 1 whose far side holds the hit; and from that corner outwards (the
+    # segment ends at t = 0, where the hit is).
+    corner = rayaccel.TriangleMesh(
+        np.array([[-2, -2, 1], [-2, 0, 3], [0, -1, 1], [2, 2, -2], [2, 1, -2], [1, 2, -2]],
+                 dtype=np.float64),
+        np.array([[0, 1, 2], [3, 4, 5]]),
+    )
+    o = np.array([[1, 2, -1], [-2, -2, 1], [-2, 2, -1]], dtype=np.float64)
+    d = np.array([[-3, -4, 2], [-1, -1, 1], [0, -4, 2]], dtype=np.float64)
+    cases.append((corner, RayBatch(o, d)))
+    # (3) A flat scene (the culling pad is zero): from a vertex on a cell corner.
+    flat = rayaccel.TriangleMesh(
+        np.array([[0, -2, 1], [0, 0, 3], [0, -1, 1], [0, 2, -2], [0, 1, -2], [0, 2, -1]],
+                 dtype=np.float64),
+        np.array([[0, 1, 2], [3, 4, 5]]),
+    )
+    o = np.array([[0, -2, 1], [0, -2, 1], [0, -2, 1], [-1, -1, 0]], dtype=np.float64)
+    d = np.array([[1, -0.5, 0.5], [-1, -0.5, 0.5], [-1, 0.5, 0.5], [1, -1, 1]],
+                 dtype=np.float64)
+    cases.append((flat, RayBatch(o, d)))
+    for mesh, rays in cases:
+        accel = rayaccel.build(mesh, "kdtree.sah", max_leaf_size=1)
+        accel.validate()
+        ref = reference.oracle(mesh, rays)
+        assert (ref.prim == 0).all()
+        stack = accel.trace(rays, traversal="kdtree.stack")
+        assert (stack.prim == 0).all()
+        ropes = accel.trace(rays, traversal="kdtree.ropes", optimize=optimize)
+        reference.assert_hits_identical(stack, ropes, "ropes")
+        any_hit = accel.trace(rays, query="any", traversal="kdtree.ropes", optimize=optimize)
+        reference.assert_any_matches(reference.tri9(mesh), rays, any_hit, ref)
 
 
 def test_stats_counters_consistent(sphere_accels):

@@ -1,8 +1,5 @@
 """``kdtree.ropes``: stackless traversal along the ropes of the leaf faces (Popov et al. 2007).
 
-Not registered: a hypothesis property test (``tests/test_properties.py``) found a mesh
-where its hits differ from the oracle; it returns to the registry once fixed (issue 16).
-
 Each leaf keeps its box and six ropes, one per face: the node on the other side of
 that face (null on the scene boundary). They are made in a post-pass
 (:func:`rope_layout`): the root's ropes are null; a child inherits its parent's,
@@ -11,10 +8,11 @@ except across the split plane, where the rope is its sibling. With
 adjacent to the face when it splits the face's axis, or to the child on the side
 that holds the whole face, so the walk enters smaller subtrees (the thesis found
 this hurt its packet version's coherence). After a leaf, the ray leaves through the
-face of the nearest exit distance and descends from that face's rope
-(:mod:`rayaccel.kdtree.traverse.stackless`). Counters: those of ``kdtree.stack``
-plus ``rope_steps``. ``info()`` of the accel counts the leaf boxes and ropes in
-``bytes`` (48 bytes per leaf).
+face of the nearest exit distance and descends from that face's rope; where it
+leaves through an edge or a corner, the cells around it are visited as the stack
+visits them (:mod:`rayaccel.kdtree.traverse.stackless`). Counters: those of
+``kdtree.stack`` plus ``rope_steps``. ``info()`` of the accel counts the leaf boxes
+and ropes in ``bytes`` (48 bytes per leaf).
 """
 
 from __future__ import annotations
@@ -25,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
+from rayaccel._variant import register
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, KdTree
 from rayaccel.kdtree.traverse.common import kd_trace_layout
@@ -117,6 +116,14 @@ def rope_layout(kd: KdTree, optimize: bool) -> KdRopes:
     return KdRopes(leaf_box, leaf_rope)
 
 
+@register(
+    "traversal",
+    "kdtree.ropes",
+    options=KdRopesOptions,
+    summary="stackless traversal along leaf-face ropes (leaf boxes, optional rope optimisation)",
+    reference="Popov, Günther, Seidel, Slusallek 2007, Stackless KD-Tree Traversal for High "
+    "Performance GPU Ray Tracing",
+)
 def trace_kdtree_ropes(
     kd: KdTree,
     mesh: TriangleMesh,

@@ -33,11 +33,18 @@ skipped, as the stack skips such entries.
     (:func:`rope_walk`). The leaf's box gives the exit distance and face; the walk
     descends from the rope to the cell holding the exit point (of two cells meeting
     within the culling pad of it, the nearer one,
-    :func:`~rayaccel.kdtree.traverse.common.descend`). It stops on a null rope, once
-    the exit lies beyond the closest hit, or at the first hit of an any-hit query.
-    A ray lying in a split plane follows the lower side of such planes first, then
-    once per combination of sides of their axes. A safety cap of four steps per
-    leaf reports an overflow instead of looping.
+    :func:`~rayaccel.kdtree.traverse.common.descend`). One rope leads to one cell, so
+    where the ray leaves through an edge or a corner (two or more faces within the
+    culling pad, :func:`rope_exit`) the cells around it that it touches without
+    crossing are not on the walk, and a triangle touching that edge may be listed
+    only there (or only beyond a null rope on the scene boundary): there the walk
+    visits the leaves ``kdtree.stack`` visits for a window of a few pads around the
+    exit, by kd-restart (:func:`window_walk`), then goes on by the rope. It stops on
+    a null rope, once the next cell begins beyond the closest hit (plus the pad) or
+    beyond the end of the segment (a cell beginning exactly there is still visited),
+    or at the first hit of an any-hit query. A ray lying in a split plane follows the
+    lower side of such planes first, then once per combination of sides of their
+    axes. A safety cap of four steps per leaf reports an overflow instead of looping.
 """
 
 from __future__ import annotations
@@ -146,6 +153,153 @@ def box_enter_py(box, row, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, t_ent
 box_enter = cpu_inline(box_enter_py)
 
 
+def rope_exit_py(box, link, leaf, ox, oy, oz, ix, iy, iz, fx, fy, fz, pad):
+    """Return ``(exit, rope, corner)`` of leaf ``leaf``.
+
+    The ray leaves through the nearest far face (NaN ignored; exact ties: x, then y,
+    then z): ``exit`` is its distance (``inf`` when no face is crossed) and ``rope``
+    its rope (-1: the scene boundary). ``corner`` is True when the ray leaves through
+    an edge or a corner within the culling pad: two or more faces within ``2·pad`` of
+    the nearest, one of them with a rope, so cells around it that the ray touches
+    without crossing may hold a triangle touching that edge (:func:`window_walk`).
+    """
+    t_x = (box[leaf, fx] - ox) * ix
+    t_y = (box[leaf, fy] - oy) * iy
+    t_z = (box[leaf, fz] - oz) * iz
+    up_x = 1 if ix >= 0 else 0
+    up_y = 3 if iy >= 0 else 2
+    up_z = 5 if iz >= 0 else 4
+    leave = INF32
+    face = -1
+    if t_x < leave:
+        leave = t_x
+        face = up_x
+    if t_y < leave:
+        leave = t_y
+        face = up_y
+    if t_z < leave:
+        leave = t_z
+        face = up_z
+    if face < 0:
+        return leave, -1, False
+    limit = leave + 2 * pad
+    n_near = 0
+    open_near = False
+    if t_x <= limit:
+        n_near += 1
+        open_near |= link[6 * leaf + up_x] >= 0
+    if t_y <= limit:
+        n_near += 1
+        open_near |= link[6 * leaf + up_y] >= 0
+    if t_z <= limit:
+        n_near += 1
+        open_near |= link[6 * leaf + up_z] >= 0
+    return leave, link[6 * leaf + face], n_near > 1 and open_near
+
+
+rope_exit = cpu_inline(rope_exit_py)
+
+
+def window_walk_py(
+    kd, t0, t1, ox, oy, oz, ix, iy, iz, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz,
+    t_lo, t_hit, pad, best_prim, best_u, best_v, stop_at_first,
+):  # fmt: skip
+    """Visit every leaf ``kdtree.stack`` visits for the segment ``[t0, t1]`` (kd-restart).
+
+    The rope walk's answer to an edge or a corner: the same padded segments and trail
+    as ``METHOD_RESTART`` over a window of a few pads, so every cell the ray touches
+    there (within the pad) is tested. Returns ``(t_hit, prim, u, v, nodes, leaves,
+    empty leaves, triangle tests, bytes)``.
+    """
+    node_f = kd.node_f
+    node_i = kd.node_i
+    n_nodes = 0
+    n_leaves = 0
+    n_empty = 0
+    n_prim = 0
+    n_bytes = 0
+    box_hi = t_hit + pad
+    trail = np.int64(0)
+    branch = np.int64(0)
+    node = 0
+    level = 0
+    tn = t0
+    tf = t1
+    while True:
+        pruned = False
+        while True:
+            n_nodes += 1
+            n_bytes += NODE_BYTES
+            if tn > box_hi:
+                pruned = True
+                break
+            bits = node_i[node, 1]
+            axis = bits & 3
+            if axis == 3:
+                break
+            child = bits >> 2
+            ts, inv = split_distance(axis, node_f[node, 0], ox, oy, oz, ix, iy, iz)
+            near = child if inv >= 0 else child + 1
+            far = 2 * child + 1 - near
+            near_needed = not (ts < tn - pad)
+            far_needed = not (ts > tf + pad)
+            near_tf = ts + pad
+            if not (near_tf < tf):
+                near_tf = tf
+            far_tn = ts - pad
+            if not (far_tn > tn):
+                far_tn = tn
+            if near_needed and far_needed:
+                if (trail >> level) & 1:
+                    node = far
+                    tn = far_tn
+                else:
+                    branch |= np.int64(1) << level
+                    node = near
+                    tf = near_tf
+            elif near_needed:
+                node = near
+                tf = near_tf
+            elif far_needed:
+                node = far
+                tn = far_tn
+            else:
+                pruned = True
+                break
+            level += 1
+        if not pruned:
+            leaf = node_i[node, 1] >> 2
+            first = kd.leaf_first[leaf]
+            count = kd.leaf_count[leaf]
+            n_leaves += 1
+            if count == 0:
+                n_empty += 1
+            n_bytes += _PRIM_BYTES * count
+            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
+                kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,
+            )  # fmt: skip
+            box_hi = t_hit + pad
+            n_prim += tested
+            if stop_at_first and best_prim >= 0:
+                break
+        if branch == 0:
+            break
+        k = level - 1
+        while not (branch >> k) & 1:
+            k -= 1
+        branch &= ~(np.int64(1) << k)
+        trail = (trail & ((np.int64(1) << k) - 1)) | (np.int64(1) << k)
+        node = 0
+        level = 0
+        tn = t0
+        tf = t1
+    return t_hit, best_prim, best_u, best_v, n_nodes, n_leaves, n_empty, n_prim, n_bytes
+
+
+window_walk = cpu_inline(window_walk_py)
+
+
 def rope_walk_py(
     kd, t_entry, t_exit, ox, oy, oz, ix, iy, iz, fx, fy, fz,
     okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
@@ -167,13 +321,15 @@ def rope_walk_py(
     mask = 0 if t_entry != INF32 else -1
     done_masks = 0
     in_plane = 0
+    # The end of the last window: an edge or a corner within it needs no other.
+    window_end = -INF32
     finished = False
     while mask >= 0 and not finished:
         t = t_entry
         start = 0
         n_walk = 0
         while True:
-            leaf_node, tf, seen, n_desc = descend(
+            leaf_node, _tf, seen, n_desc = descend(
                 kd.node_f, kd.node_i, start, t, t_exit, ox, oy, oz, ix, iy, iz, mask, pad
             )
             in_plane |= seen
@@ -195,13 +351,40 @@ def rope_walk_py(
             if stop_at_first and best_prim >= 0:
                 finished = True
                 break
-            leave, exit_axis = box_exit(kd.node_box, leaf, ox, oy, oz, ix, iy, iz, fx, fy, fz)
-            if leave < tf:
-                tf = leave
-            if tf > box_hi or tf >= t_exit or exit_axis < 0:
+            leave, rope, corner = rope_exit(
+                kd.node_box, kd.link, leaf, ox, oy, oz, ix, iy, iz, fx, fy, fz, pad
+            )
+            # The next cell begins at ``leave``: needed up to the closest hit plus the
+            # pad, and up to the end of the segment inclusive (a hit on it counts).
+            if leave > box_hi or leave > t_exit:
                 break
-            inv_e = ix if exit_axis == 0 else (iy if exit_axis == 1 else iz)
-            rope = kd.link[6 * leaf + 2 * exit_axis + (1 if inv_e >= 0 else 0)]
+            if corner and leave > window_end:
+                # An edge or a corner: every cell around it, as the stack visits them.
+                w0 = leave - 2 * pad
+                if w0 < t_entry:
+                    w0 = t_entry
+                w1 = leave + 2 * pad
+                if w1 > t_exit:
+                    w1 = t_exit
+                window_end = w1
+                (
+                    t_hit, best_prim, best_u, best_v, w_nodes, w_leaves, w_empty, w_prim,
+                    w_bytes,
+                ) = window_walk(
+                    kd, w0, w1, ox, oy, oz, ix, iy, iz, okx, oky, okz, kx, ky, kz,
+                    Sx, Sy, Sz, t_lo, t_hit, pad, best_prim, best_u, best_v, stop_at_first,
+                )  # fmt: skip
+                box_hi = t_hit + pad
+                n_nodes += w_nodes
+                n_leaves += w_leaves
+                n_empty += w_empty
+                n_prim += w_prim
+                n_bytes += w_bytes
+                if stop_at_first and best_prim >= 0:
+                    finished = True
+                    break
+                if leave > box_hi:
+                    break
             if rope < 0:
                 break
             n_walk += 1
@@ -211,8 +394,8 @@ def rope_walk_py(
                 break
             n_rope += 1
             start = rope
-            if tf > t:
-                t = tf
+            if leave > t:
+                t = leave
         done_masks |= 1 << mask
         mask = -1
         if not finished:
