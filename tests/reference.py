@@ -84,6 +84,33 @@ def fine_options(build_key: str) -> dict:
     return {"max_leaf_size": 1} if "max_leaf_size" in fields else {}
 
 
+#: File scenes of over a million triangles: only ``registry.DEFAULT_BUILD_KEY`` builds
+#: there in the default tier.
+BIG_FILE_SCENES = ("kitchen",)
+
+
+def file_scene_marks(build_key: str, scene: str, file_scene: bool) -> list:
+    """``[pytest.mark.cross]`` unless ``build_key`` is built on ``scene`` in the default tier.
+
+    File scenes add size, not shapes: every build key's tree shapes are checked on the
+    procedural scenes, so the default tier builds only each structure's default tree on
+    the file scenes (and only the default BVH on the big ones); ``--full`` builds every
+    key on every scene. Building each of the sixteen keys over the medium file scenes
+    was most of CI's time on two cores.
+    """
+    import pytest
+
+    from rayaccel import registry
+
+    if not file_scene:
+        return []
+    if scene in BIG_FILE_SCENES:
+        kept = build_key == registry.DEFAULT_BUILD_KEY
+    else:
+        kept = is_default_builder(build_key)
+    return [] if kept else [pytest.mark.cross]
+
+
 def builder_traversal_pairs() -> list:
     """``pytest.param(builder, traversal)`` for every registered builder and traversal of
     its structure; pairs outside the core ones are marked ``cross``."""

@@ -33,15 +33,8 @@ TRAVERSALS = _traversal_params()
 QUERIES = [pytest.param(q, id=q) for q in ("closest", "any")]
 SCENES = scene_params(marks_slow_files=False)
 
-#: Scenes of over a million triangles: only the default build key's tree in the default tier
-#: (every other build key is checked on the six smaller file scenes; ``--full`` adds
-#: these), which keeps CI's builds of ten trees over 1.4M triangles out of its budget.
-BIG_SCENES = ("kitchen",)
-
-
-def _cross_if_big(builder: str, scene: str) -> list:
-    big = scene in BIG_SCENES and builder != registry.DEFAULT_BUILD_KEY
-    return [pytest.mark.cross] if big else []
+def _is_file_scene(scene) -> bool:
+    return any(m.name == "scenes" for m in scene.marks)
 
 
 def _pair_scene_params(cross_on_procedural: bool) -> list:
@@ -54,11 +47,11 @@ def _pair_scene_params(cross_on_procedural: bool) -> list:
     params = []
     for scene in SCENES:
         name = scene.values[0]
-        file_scene = any(m.name == "scenes" for m in scene.marks)
+        file_scene = _is_file_scene(scene)
         for pair in TRAVERSALS:
             builder, traversal = pair.values
             core = reference.is_core_pair(builder, traversal)
-            marks = list(scene.marks) + _cross_if_big(builder, name)
+            marks = list(scene.marks) + reference.file_scene_marks(builder, name, file_scene)
             if not core and (file_scene or not cross_on_procedural):
                 marks.append(pytest.mark.cross)
             params.append(
@@ -88,7 +81,8 @@ def test_registry_is_not_empty():
 
 BUILDER_SCENES = [
     pytest.param(b.values[0], sc.values[0], id=f"{b.id}-{sc.id}",
-                 marks=[*sc.marks, *_cross_if_big(b.values[0], sc.values[0])])
+                 marks=[*sc.marks,
+                        *reference.file_scene_marks(b.values[0], sc.values[0], _is_file_scene(sc))])
     for sc in SCENES
     for b in BUILDERS
 ]
@@ -204,7 +198,7 @@ def test_tmax_inclusive_single_triangle(traversal):
     ("builder", "traversal", "scene"),
     [
         pytest.param(*p.values, scene, id=f"{p.id}-{scene}",
-                     marks=[*p.marks, *_cross_if_big(p.values[0], scene)])
+                     marks=[*p.marks, *reference.file_scene_marks(p.values[0], scene, True)])
         for scene in ("stanford-bunny", "sponza_dabrovic", "kitchen")
         for p in PAIRS_CORE_FIRST
     ],

@@ -41,7 +41,14 @@ SCENES = [
     *(pytest.param(name, id=name, marks=pytest.mark.scenes)
       for name in ("CornellBox-Original", "stanford-bunny", "sponza_dabrovic", "staircase")),
 ]
-PAIRS = reference.builder_traversal_pairs()
+PAIR_SCENES = [
+    pytest.param(*pair.values, scene.values[0], id=f"{pair.id}-{scene.id}",
+                 marks=[*pair.marks, *scene.marks,
+                        *reference.file_scene_marks(pair.values[0], scene.values[0],
+                                                    bool(scene.marks))])
+    for scene in SCENES
+    for pair in reference.builder_traversal_pairs()
+]
 
 
 def _embree_closest(triangles: np.ndarray, rays) -> tuple[np.ndarray, np.ndarray]:
@@ -100,8 +107,7 @@ def explain(triangles, rays, ours_prim, ours_t, other_prim, other_t) -> dict[str
             "unexplained": ~(tie | edge | grazing)}
 
 
-@pytest.mark.parametrize("scene", SCENES)
-@pytest.mark.parametrize(("builder", "traversal"), PAIRS)
+@pytest.mark.parametrize(("builder", "traversal", "scene"), PAIR_SCENES)
 def test_agrees_with_embree(scenes_cache, full, builder, traversal, scene):
     accel = scenes_cache.accel(builder, scene)
     mesh = accel.mesh

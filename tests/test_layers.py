@@ -3,7 +3,7 @@
 Layers, lowest first: 0 ``_jit dtypes errors counters config queries _variant _atomic
 _hugepages _work``; 1 ``kernels``; 2 ``scene rays``; 3 ``trace`` (the family-neutral
 traversal core); 4 ``bvh kdtree grid``; 5 ``cuda``; 6 ``registry metrics``; 7 ``api``;
-8 ``render bench``; 9 ``cli``. A module imports only from its own layer or lower
+8 ``render bench precompile``; 9 ``cli``. A module imports only from its own layer or lower
 ones; sibling packages of one layer (``scene``/``rays``, ``bvh``/``kdtree``/``grid``,
 ``registry``/``metrics``, ``render``/``bench``) stay independent, so no family imports
 another. No module imports another module's private (``_name``) names. The package
@@ -36,8 +36,8 @@ LAYERS: dict[str, int] = {
     "bvh": 4, "kdtree": 4, "grid": 4,
     "cuda": 5,
     "registry": 6, "metrics": 6,
-    "api": 7, "precompile": 7,
-    "render": 8, "bench": 8,
+    "api": 7,
+    "render": 8, "bench": 8, "precompile": 8,
     "cli": 9,
 }
 #: Layer-0 modules are one foundation and may import each other; packages may not.

@@ -23,6 +23,19 @@ captures each traversal's per-ray body) would miss the cache in every new proces
 :class:`StableClosureCache` keys such a cell by the function's module, qualified name
 and (recursively) its own closure instead: the source digest of the folder already
 pins the code behind those names.
+
+Symbol names: numba names a compiled function after its module, qualified name, flags,
+argument types and a counter of the process that compiled it, and a kernel loaded
+from the cache brings the machine code of the kernels it calls under those names.
+Closures of one factory share a qualified name, and often their argument types
+(``bvh2.bitstack`` and ``bvh2.parent_link`` walk one layout; a traversal's statistics
+variants take the same arrays), so two of them compiled in different processes can
+carry the same symbol; loaded into one process, every caller then runs whichever was
+loaded first (the statistics kernel ran the plain body and counted nothing).
+:func:`cpu_kernel` therefore appends :func:`closure_digest` to a closure's qualified
+name, which also gives each closure its own index and data files in the cache
+(numba names them after the qualified name), so processes compiling kernels of one
+factory at once (``rayaccel cache warm --jobs``) never rewrite each other's index.
 """
 
 from __future__ import annotations
@@ -37,7 +50,7 @@ from typing import Any
 import numba
 from llvmlite import ir
 from numba.core import cgutils, serialize, types
-from numba.core.caching import FunctionCache, IndexDataCacheFile
+from numba.core.caching import FunctionCache
 from numba.core.dispatcher import Dispatcher
 from numba.core.errors import NumbaPerformanceWarning
 from numba.extending import intrinsic
@@ -81,24 +94,17 @@ def _stable_function(func: Callable[..., Any]) -> tuple[Any, ...]:
     return (func.__module__, func.__qualname__, cells)
 
 
-class StableClosureCache(FunctionCache):  # type: ignore[misc]
-    """numba's on-disk function cache, keyed by :func:`_stable_cell` for closure cells.
+def closure_digest(func: Callable[..., Any]) -> str:
+    """Return a process-independent digest of ``func``'s closure cells (:func:`_stable_cell`)."""
+    return hashlib.sha256(serialize.dumps(_stable_function(func)[2])).hexdigest()
 
-    Each closure also gets its own index and data files (numba names them after the
-    factory's source line, shared by every kernel the factory makes). numba updates an
-    index by reading, editing and rewriting it, so processes that compile different
-    kernels of one factory at once (``rayaccel cache warm --jobs``, pytest-xdist)
-    would otherwise drop each other's entries or pick the same data-file number.
-    """
+
+class StableClosureCache(FunctionCache):  # type: ignore[misc]
+    """numba's on-disk function cache, keyed by :func:`_stable_cell` for closure cells."""
 
     def __init__(self, py_func: Callable[..., Any]) -> None:
         super().__init__(py_func)
-        self._cells = hashlib.sha256(serialize.dumps(_stable_function(py_func)[2])).hexdigest()
-        self._cache_file = IndexDataCacheFile(
-            cache_path=self._cache_path,
-            filename_base=f"{self._impl.filename_base}-{self._cells[:16]}",
-            source_stamp=self._impl.locator.get_source_stamp(),
-        )
+        self._cells = closure_digest(py_func)
 
     def _index_key(self, sig: Any, codegen: Any) -> Any:
         code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
@@ -159,6 +165,9 @@ def cpu_kernel(
     )
 
     def decorate(func: Callable[..., Any]) -> Any:
+        if func.__closure__:
+            # One name per closure (see the module docstring, Symbol names).
+            func.__qualname__ = f"{func.__qualname__}_{closure_digest(func)[:16]}"
         dispatcher = jit(func)
         dispatcher._cache = StableClosureCache(func)
         if simplify:

@@ -1,4 +1,4 @@
-"""Compile kernels ahead of their first call, in parallel processes (layer 7).
+"""Compile kernels ahead of their first call, in parallel processes (layer 8).
 
 numba compiles a kernel on its first call and keeps the machine code in the on-disk
 cache (:mod:`rayaccel._jit`). One traversal's chunk worker takes ten to forty seconds

@@ -35,13 +35,16 @@ def memoised_layout(
 
     Every traversal layout derived from a canonical structure (packed rows, links,
     ropes, cell ranges) is memoised this way in its ``Accel``'s cache; without a cache
-    it is made afresh.
+    it is made afresh. Making one may launch parallel kernels, so it runs in
+    :func:`rayaccel.config.parallel_section` like a traversal.
     """
-    if cache is None:
-        return make()
-    if name not in cache:
-        cache[name] = make()
-    return cache[name]  # type: ignore[no-any-return]
+    if cache is not None and name in cache:
+        return cache[name]  # type: ignore[no-any-return]
+    with parallel_section():
+        layout = make()
+    if cache is not None:
+        cache[name] = layout
+    return layout
 
 
 def body_kernels(make_scratch: Any, trace_rays: Any) -> Callable[[int, bool, bool], Any]:

@@ -73,6 +73,7 @@ from rayaccel.bvh.traverse.building_blocks import (
     pick,
 )
 from rayaccel.bvh.traverse.stack import packed_layout
+from rayaccel.config import parallel_section
 from rayaccel.counters import Counter
 from rayaccel.dtypes import REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
@@ -652,11 +653,12 @@ class TraversalState:
         """
         hits = HitBatch.empty(self.rays.n_rays)
         if self.rays.n_rays:
-            _resume_kernel(
-                self._arrays, self.rays.origin, self.rays.direction, self.rays.tmin,
-                self.rays.tmax, self._node, self._prow, self._key, self._trail, self._pos,
-                self._status, hits.t, hits.prim, hits.u, hits.v,
-            )  # fmt: skip
+            with parallel_section():
+                _resume_kernel(
+                    self._arrays, self.rays.origin, self.rays.direction, self.rays.tmin,
+                    self.rays.tmax, self._node, self._prow, self._key, self._trail, self._pos,
+                    self._status, hits.t, hits.prim, hits.u, hits.v,
+                )  # fmt: skip
         return hits
 
     def all_hits(
