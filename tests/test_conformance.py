@@ -51,7 +51,9 @@ def _pair_scene_params(cross_on_procedural: bool) -> list:
         for pair in TRAVERSALS:
             builder, traversal = pair.values
             core = reference.is_core_pair(builder, traversal)
-            marks = list(scene.marks) + reference.file_scene_marks(builder, name, file_scene)
+            marks = list(scene.marks) + reference.file_scene_marks(
+                builder, name, file_scene, traversal
+            )
             if not core and (file_scene or not cross_on_procedural):
                 marks.append(pytest.mark.cross)
             params.append(
@@ -198,7 +200,8 @@ def test_tmax_inclusive_single_triangle(traversal):
     ("builder", "traversal", "scene"),
     [
         pytest.param(*p.values, scene, id=f"{p.id}-{scene}",
-                     marks=[*p.marks, *reference.file_scene_marks(p.values[0], scene, True)])
+                     marks=[*p.marks, *reference.file_scene_marks(*p.values[:1], scene, True,
+                                                                  p.values[1])])
         for scene in ("stanford-bunny", "sponza_dabrovic", "kitchen")
         for p in PAIRS_CORE_FIRST
     ],

@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numba import prange
@@ -101,16 +102,26 @@ def sub_resolutions(size: np.ndarray, counts: np.ndarray, density: float) -> np.
     return out.astype(INDEX)
 
 
+#: ``_leaf_pairs`` modes: count overlapped leaves, write the pairs, or bound the count.
+COUNT = 0
+FILL = 1
+BOUND = 2
+#: Rounds of halving sub-grid resolutions before the leaf level fits its reference budget.
+MAX_SHRINK_ROUNDS = 64
+
+
 @cpu_kernel(parallel=True)
 def _leaf_pairs(
     tri, top_of_ref, top_prim, lo, size, res, sub_res, leaf_first, leaf_size, margin,
-    counts, offsets, keys, values, fill,
+    counts, offsets, keys, values, mode,
 ):  # fmt: skip
-    """Count or write the leaf cells each top reference overlaps.
+    """Count, write or bound the leaf cells each top reference overlaps.
 
-    ``fill`` False: counts into ``counts``; True: pairs written from ``offsets``, with no
-    test when the count says every candidate leaf overlaps.
+    ``mode`` COUNT: exact counts into ``counts``; FILL: pairs written from ``offsets``,
+    with no test when the count says every candidate leaf overlaps; BOUND: the number
+    of candidate leaves (the triangle's box in leaf cells) into ``counts``, no test.
     """
+    fill = mode == FILL
     n = top_prim.shape[0]
     n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
     rx = res[0]
@@ -154,6 +165,9 @@ def _leaf_pairs(
                     counts[i] = 1
                 continue
             n_cand = (last[0] - first[0] + 1) * (last[1] - first[1] + 1) * (last[2] - first[2] + 1)
+            if mode == BOUND:
+                counts[i] = n_cand
+                continue
             every = fill and counts[i] == n_cand
             for z in range(first[2], last[2] + 1):
                 b_lo[2] = top_lo[2] + np.float32(z) * leaf_size[c, 2] - margin[c, 2]
@@ -171,6 +185,46 @@ def _leaf_pairs(
                             slot += 1
             if not fill:
                 counts[i] = slot
+
+
+def _leaf_geometry(top: Any, size: np.ndarray, sub_res: np.ndarray) -> tuple[Any, Any]:
+    """Return the leaf cell sizes and overlap margins of every top cell's sub-grid."""
+    leaf_size = (size[None, :] / sub_res).astype(REAL)
+    coords = (np.abs(top.lo.astype(np.float64)) + np.abs(top.hi)) * 2.0**-21
+    margin = np.minimum(
+        (leaf_size * (2.0**-10) + coords).astype(REAL), cell_margin(top.lo, top.hi, top.res)
+    )
+    return leaf_size, margin
+
+
+def _cells_to_coarsen(
+    top_of_ref: np.ndarray,
+    bound: np.ndarray,
+    counts: np.ndarray,
+    sub_res: np.ndarray,
+    budget: int,
+    opts: TwoLevelOptions,
+) -> np.ndarray | None:
+    """Return the top cells whose sub-grids to halve, or None when the leaf level fits.
+
+    λ2 sizes a sub-grid by its reference count alone, so a top cell holding many large
+    or identical overlapping triangles (100k copies of one triangle) would list each
+    in most of its leaves: billions of pairs. While the upper bound on the pairs
+    (each reference's box in leaf cells) exceeds the budget (``max_refs``, and
+    ``max_refs_per_prim`` per primitive), the cells whose references average more than
+    ``max_refs_per_prim`` leaves are halved, or failing those every cell whose
+    references span several leaves; at resolution 1 a cell lists each reference
+    once, within the top level's own budget.
+    """
+    if int(bound.sum()) <= budget:
+        return None
+    per_cell = np.bincount(top_of_ref, weights=bound, minlength=counts.shape[0])
+    spread = per_cell / np.maximum(counts, 1)
+    can = (sub_res > 1).any(axis=1)
+    shrink = can & (spread > opts.max_refs_per_prim)
+    if not shrink.any():
+        shrink = can & (spread > 1.0)
+    return shrink if shrink.any() else None
 
 
 @register(
@@ -201,6 +255,19 @@ def build_two_level_grid(
     counts = np.diff(top.cell_start)
     size = ((top.hi - top.lo) / top.res).astype(REAL)
     sub_res = sub_resolutions(size, counts, opts.leaf_density)
+    top_of_ref = np.repeat(np.arange(n_top, dtype=np.int64), counts)
+    n_ref = top.n_refs
+    offsets = np.empty(n_ref, dtype=np.int64)
+    budget = min(opts.max_refs, max(n_ref, int(opts.max_refs_per_prim * top.n_prims)))
+    for _ in range(MAX_SHRINK_ROUNDS):
+        leaf_size, margin = _leaf_geometry(top, size, sub_res)
+        args = (tri, top_of_ref, top.prim_index, top.lo, size, top.res, sub_res,
+                np.zeros(n_top + 1, INDEX), leaf_size, margin, offsets)  # fmt: skip
+        _leaf_pairs(*args, offsets, np.empty(0, np.int64), np.empty(0, np.int32), BOUND)
+        shrink = _cells_to_coarsen(top_of_ref, offsets, counts, sub_res, budget, opts)
+        if shrink is None:
+            break
+        sub_res[shrink] = np.maximum(sub_res[shrink] // 2, 1)
     n_sub = np.prod(sub_res.astype(np.int64), axis=1)
     leaf_first64 = np.concatenate([[0], np.cumsum(n_sub)])
     n_leaves = int(leaf_first64[-1])
@@ -210,19 +277,12 @@ def build_two_level_grid(
             f"cells, more than max_cells={opts.max_cells}; lower it or raise max_cells"
         )
     leaf_first = leaf_first64.astype(INDEX)
-    leaf_size = (size[None, :] / sub_res).astype(REAL)
-    coords = (np.abs(top.lo.astype(np.float64)) + np.abs(top.hi)) * 2.0**-21
-    margin = np.minimum(
-        (leaf_size * (2.0**-10) + coords).astype(REAL), cell_margin(top.lo, top.hi, top.res)
-    )
-    top_of_ref = np.repeat(np.arange(n_top, dtype=np.int64), counts)
+    leaf_size, margin = _leaf_geometry(top, size, sub_res)
     phases["sub_res"] = (time.perf_counter() - t0) * 1e3
     t1 = time.perf_counter()
-    n_ref = top.n_refs
-    offsets = np.empty(n_ref, dtype=np.int64)
     args = (tri, top_of_ref, top.prim_index, top.lo, size, top.res, sub_res, leaf_first,
             leaf_size, margin, offsets)  # fmt: skip
-    _leaf_pairs(*args, offsets, np.empty(0, np.int64), np.empty(0, np.int32), False)
+    _leaf_pairs(*args, offsets, np.empty(0, np.int64), np.empty(0, np.int32), COUNT)
     total = np.cumsum(offsets)
     n_pairs = int(total[-1]) if n_ref else 0
     if n_pairs > 2**31 - 1:
@@ -233,7 +293,7 @@ def build_two_level_grid(
         starts[1:] = total[:-1]
     keys = np.empty(n_pairs, dtype=np.int64)
     values = np.empty(n_pairs, dtype=np.int32)
-    _leaf_pairs(*args, starts, keys, values, True)
+    _leaf_pairs(*args, starts, keys, values, FILL)
     phases["leaf_pairs"] = (time.perf_counter() - t1) * 1e3
     t1 = time.perf_counter()
     keys, values = radix_sort(keys, values, max(1, (n_leaves - 1).bit_length()))
