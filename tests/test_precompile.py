@@ -22,13 +22,13 @@ def test_jobs_cover_every_kernel_variant():
                     for parallel in (False, True):
                         assert (traversal, query, stats, parallel) in kernels
     assert {j.build_key for j in todo if j.traversal is None} == set(registry.build_keys())
-    # Every builder's tree gets the serial kernels (a builder may have its own layout).
+    # The two-level grid has its own layout: its serial kernels are compiled too.
     serial = {(j.build_key, j.traversal, j.query, j.stats) for j in todo if not j.parallel}
-    for builder in registry.variants("builder"):
-        for traversal in registry.keys("traversal", builder.structure):
-            for query in ("closest", "any"):
-                for stats in (False, True):
-                    assert (builder.key, traversal, query, stats) in serial
+    for traversal in registry.keys("traversal", "grid"):
+        for query in ("closest", "any"):
+            for stats in (False, True):
+                assert ("grid.two_level", traversal, query, stats) in serial
+    assert not any(j.build_key == "bvh2.sbvh" for j in todo if j.traversal)
     # Serial jobs (which compile the chunk workers) come before the parallel ones.
     first_parallel = next(i for i, j in enumerate(todo) if j.parallel)
     assert all(j.traversal and not j.parallel for j in todo[:first_parallel])

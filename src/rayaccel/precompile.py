@@ -87,7 +87,8 @@ def jobs(
     -------
     list of Job
         Serial kernels on each structure's default tree first (each compiles its
-        traversal's chunk worker, the slow part), then on every other builder's tree,
+        traversal's chunk worker, the slow part), then on the trees of builders that
+        return another structure class (:func:`_other_layouts`),
         then the parallel ones (a ``prange`` around that worker), then builds.
     """
     names = list(structures) if structures is not None else registry.structures()
@@ -107,17 +108,36 @@ def jobs(
     for query in QUERY_KINDS:
         for structure in names:
             tree = registry.default_builder(structure)
-            others = [key for key in registry.keys("builder", structure) if key != tree]
+            others = _other_layouts(structure)
             for traversal in registry.keys("traversal", structure):
                 for stats in (False, True):
                     serial.append(Job(tree, traversal, query, stats, parallel=False))
-                    # A builder may make its own layout (the two-level grid): its serial
-                    # kernels compile anew; where the layout is shared they load in ms.
+                    # A builder of another structure class (the two-level grid) has
+                    # its own layout, so its kernels compile anew.
                     other_trees += [Job(key, traversal, query, stats) for key in others]
                     keep = variant_filter is None or variant_filter(traversal, query, stats)
                     if parallel and keep:
                         parallel_jobs.append(Job(tree, traversal, query, stats, parallel=True))
     return serial + other_trees + parallel_jobs + builds
+
+
+def _other_layouts(structure: str) -> list[str]:
+    """Return one builder per structure class of ``structure`` besides the default builder's.
+
+    Traversal kernels are compiled per layout type, which follows the class a builder
+    returns (its return annotation): ``grid.two_level`` returns a ``TwoLevelGrid`` and
+    needs its own kernels, while every ``bvh2`` builder returns a ``Bvh2``.
+    """
+    variants = registry.variants("builder", structure)
+    default = registry.default_builder(structure)
+    seen = {v.func.__annotations__.get("return") for v in variants if v.key == default}
+    others = []
+    for variant in variants:
+        kind = variant.func.__annotations__.get("return")
+        if kind not in seen or kind is None:
+            seen.add(kind)
+            others.append(variant.key)
+    return others
 
 
 _MESH: list[Any] = []
