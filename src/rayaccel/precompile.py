@@ -88,8 +88,8 @@ def jobs(
     list of Job
         Serial kernels on each structure's default tree first (each compiles its
         traversal's chunk worker, the slow part), then on the trees of builders that
-        return another structure class (:func:`_other_layouts`),
-        then the parallel ones (a ``prange`` around that worker), then builds.
+        return another structure class (:func:`_other_layouts`), then the parallel
+        ones (a ``prange`` around that worker), then builds.
     """
     names = list(structures) if structures is not None else registry.structures()
     unknown = sorted(set(names) - set(registry.structures()))
@@ -134,7 +134,8 @@ def _other_layouts(structure: str) -> list[str]:
     others = []
     for variant in variants:
         kind = variant.func.__annotations__.get("return")
-        if kind not in seen or kind is None:
+        # An unannotated builder may return anything: its kernels are compiled too.
+        if variant.key != default and (kind is None or kind not in seen):
             seen.add(kind)
             others.append(variant.key)
     return others

@@ -62,7 +62,8 @@ class TwoLevelOptions:
     max_cells : int
         Largest number of top cells, and of leaf cells (as ``grid.uniform``).
     max_refs, max_refs_per_prim
-        The top level's reference budget (as ``grid.uniform``).
+        The reference budget of the top level (as ``grid.uniform``) and of the leaf
+        level, whose sub-grids are coarsened to fit it (:func:`_cells_to_coarsen`).
     """
 
     top_density: float = 1.0 / 16.0
