@@ -89,9 +89,7 @@ def fine_options(build_key: str) -> dict:
 BIG_FILE_SCENES = ("kitchen", "salle_de_bain")
 
 
-def file_scene_marks(
-    build_key: str, scene: str, file_scene: bool, traversal: str | None = None
-) -> list:
+def file_scene_marks(build_key: str, scene: str, traversal: str | None = None) -> list:
     """``[pytest.mark.cross]`` unless ``build_key`` (and ``traversal``) run on ``scene`` by default.
 
     File scenes add size, not shapes: every build key's tree shapes are checked on the
@@ -103,9 +101,10 @@ def file_scene_marks(
     """
     import pytest
 
+    from conftest import FILE_SCENES
     from rayaccel import registry
 
-    if not file_scene:
+    if scene not in FILE_SCENES:
         return []
     if scene in BIG_FILE_SCENES:
         kept = build_key == registry.DEFAULT_BUILD_KEY and traversal in (

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import reference
-from conftest import scene_params
+from conftest import FILE_SCENES, scene_params
 from rayaccel import registry
 from rayaccel.rays.batch import RayBatch
 
@@ -33,10 +33,6 @@ TRAVERSALS = _traversal_params()
 QUERIES = [pytest.param(q, id=q) for q in ("closest", "any")]
 SCENES = scene_params(marks_slow_files=False)
 
-def _is_file_scene(scene) -> bool:
-    return any(m.name == "scenes" for m in scene.marks)
-
-
 def _pair_scene_params(cross_on_procedural: bool) -> list:
     """``(builder, traversal, scene)`` cases: the core pairs everywhere, the other pairs
     marked ``cross`` (run with ``--full``) except, when asked, on procedural scenes.
@@ -47,14 +43,11 @@ def _pair_scene_params(cross_on_procedural: bool) -> list:
     params = []
     for scene in SCENES:
         name = scene.values[0]
-        file_scene = _is_file_scene(scene)
         for pair in TRAVERSALS:
             builder, traversal = pair.values
             core = reference.is_core_pair(builder, traversal)
-            marks = list(scene.marks) + reference.file_scene_marks(
-                builder, name, file_scene, traversal
-            )
-            if not core and (file_scene or not cross_on_procedural):
+            marks = list(scene.marks) + reference.file_scene_marks(builder, name, traversal)
+            if not core and (name in FILE_SCENES or not cross_on_procedural):
                 marks.append(pytest.mark.cross)
             params.append(
                 pytest.param(builder, traversal, name, id=f"{pair.id}-{name}", marks=marks)
@@ -84,7 +77,7 @@ def test_registry_is_not_empty():
 BUILDER_SCENES = [
     pytest.param(b.values[0], sc.values[0], id=f"{b.id}-{sc.id}",
                  marks=[*sc.marks,
-                        *reference.file_scene_marks(b.values[0], sc.values[0], _is_file_scene(sc))])
+                        *reference.file_scene_marks(b.values[0], sc.values[0])])
     for sc in SCENES
     for b in BUILDERS
 ]
@@ -200,8 +193,7 @@ def test_tmax_inclusive_single_triangle(traversal):
     ("builder", "traversal", "scene"),
     [
         pytest.param(*p.values, scene, id=f"{p.id}-{scene}",
-                     marks=[*p.marks, *reference.file_scene_marks(*p.values[:1], scene, True,
-                                                                  p.values[1])])
+                     marks=[*p.marks, *reference.file_scene_marks(p.values[0], scene, p.values[1])])
         for scene in ("stanford-bunny", "sponza_dabrovic", "kitchen")
         for p in PAIRS_CORE_FIRST
     ],

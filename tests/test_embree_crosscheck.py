@@ -44,8 +44,7 @@ SCENES = [
 PAIR_SCENES = [
     pytest.param(*pair.values, scene.values[0], id=f"{pair.id}-{scene.id}",
                  marks=[*pair.marks, *scene.marks,
-                        *reference.file_scene_marks(pair.values[0], scene.values[0],
-                                                    bool(scene.marks))])
+                        *reference.file_scene_marks(pair.values[0], scene.values[0])])
     for scene in SCENES
     for pair in reference.builder_traversal_pairs()
 ]
