@@ -21,8 +21,9 @@ A traversal module supplies two inline functions (``rayaccel._jit.cpu_inline``):
 
 Both are inlined into the kernel at numba IR level, so the compiled code is the code
 of a hand-written loop. ``with_stats`` reaches the body as a compile-time constant,
-and LLVM removes the counter updates when it is off; ``query`` is a run-time value
-that the body tests only once it has a hit. The body takes a
+and LLVM removes the counter updates when it is off; ``query`` is a compile-time
+constant of the plain kernels and a run-time value of the statistics kernels
+(:func:`trace_kernel`), which the body tests only once it has a hit. The body takes a
 chunk rather than one ray because every array an inlined function receives or unpacks
 is reference-counted on entry and exit: once per ray that is a dozen atomic updates
 of counts that every thread shares, which cost ``bvh2.stack`` a third of its speed on
@@ -36,6 +37,7 @@ from __future__ import annotations
 import functools
 from typing import Any
 
+import numpy as np
 from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
@@ -52,9 +54,9 @@ def chunk_worker(make_scratch: Any, trace_rays: Any, with_stats: bool) -> Any:
     ``worker(layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v,
     counters, counter, query) -> n_overflowed`` makes the worker's scratch once, then
     runs the traversal's body on the chunks it takes from the shared ``counter``
-    (:func:`rayaccel._work.next_item`). ``query`` is a run-time argument: a body tests
-    it only where it finds a hit, and one worker per statistics variant halves what a
-    traversal compiles (see ``docs/performance.md``, Compile time).
+    (:func:`rayaccel._work.next_item`). ``query`` is a literal (compile-time) value in
+    the plain kernels and a run-time one in the statistics kernels
+    (:func:`trace_kernel`); a body tests it only where it finds a hit.
     """
 
     @cpu_kernel()
@@ -112,19 +114,24 @@ def trace_kernel(
         ``numba.get_num_threads()`` read by the caller.
     """
     worker = chunk_worker(make_scratch, trace_rays, with_stats)
+    # A plain int reaches the worker as a literal type: the worker is compiled per query
+    # kind with the query folded in (the plain kernels, where speed counts). A numpy
+    # int64 is a run-time value: one statistics worker serves both kinds, which halves
+    # what the statistics variants compile.
+    query_arg = np.int64(query) if with_stats else int(query)
 
     @cpu_kernel(parallel=parallel)
     def kernel(
         layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, n_threads
     ):
-        _ = (query, parallel)
+        _ = (query_arg, parallel)
         overflow = 0
         n_chunks = (origin.shape[0] + RAY_CHUNK - 1) // RAY_CHUNK
         counter = new_counter()
         for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
             overflow += worker(
                 layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v,
-                counters, counter, query,
+                counters, counter, query_arg,
             )  # fmt: skip
         return overflow
 
