@@ -80,5 +80,5 @@ def trace_kdtree_backtrack(
     """Trace rays through a kd-tree with kd-backtrack (parameters as ``kdtree.stack``)."""
     _ = options
     return run_trace(
-        trace_kernel(METHOD_BACKTRACK, 1), _arrays(kd, mesh, cache), rays, query, stats
+        trace_kernel(METHOD_BACKTRACK), _arrays(kd, mesh, cache), rays, query, stats
     )

@@ -46,4 +46,4 @@ def trace_kdtree_restart(
     """Trace rays through a kd-tree with kd-restart (parameters as ``kdtree.stack``)."""
     _ = options
     arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache))
-    return run_trace(trace_kernel(METHOD_RESTART, 1), arrays, rays, query, stats)
+    return run_trace(trace_kernel(METHOD_RESTART), arrays, rays, query, stats)

@@ -139,4 +139,4 @@ def trace_kdtree_ropes(
     name = "kdtree.ropes" if opt.optimize else "kdtree.ropes_plain"
     ropes = memoised_layout(cache, name, lambda: rope_layout(kd, opt.optimize))
     arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache), ropes.leaf_box, ropes.leaf_rope)
-    return run_trace(trace_kernel(METHOD_ROPES, 1), arrays, rays, query, stats)
+    return run_trace(trace_kernel(METHOD_ROPES), arrays, rays, query, stats)

@@ -30,7 +30,7 @@ class KdShortStackOptions:
     Attributes
     ----------
     size : int
-        Ring entries (1..STACK_SIZE); each size compiles its own kernel.
+        Ring entries (1..STACK_SIZE); one kernel serves every size.
     """
 
     size: int = 3
@@ -59,5 +59,5 @@ def trace_kdtree_short_stack(
 ) -> HitBatch:
     """Trace rays through a kd-tree with a short stack (parameters as ``kdtree.stack``)."""
     opt = options or KdShortStackOptions()
-    arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache))
-    return run_trace(trace_kernel(METHOD_SHORT_STACK, int(opt.size)), arrays, rays, query, stats)
+    arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache), ring_size=int(opt.size))
+    return run_trace(trace_kernel(METHOD_SHORT_STACK), arrays, rays, query, stats)

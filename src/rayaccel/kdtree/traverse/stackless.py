@@ -95,17 +95,26 @@ class StacklessArrays(NamedTuple):
     root_box: FloatArray
     node_box: FloatArray  # (n, 6) interleaved cells (backtrack) or (n_leaves, 6) (ropes)
     link: IntArray  # (n,) parents (backtrack) or (n_leaves, 6) ropes flattened (ropes)
+    ring_size: IntArray  # (1,) the short stack's ring entries (1..STACK_SIZE)
 
 
 def stackless_arrays(
-    layout: KdTraceLayout, box: FloatArray | None = None, link: IntArray | None = None
+    layout: KdTraceLayout,
+    box: FloatArray | None = None,
+    link: IntArray | None = None,
+    ring_size: int = 1,
 ) -> StacklessArrays:
-    """Return the kernel argument: ``layout``'s arrays plus boxes and links."""
+    """Return the kernel argument: ``layout``'s arrays plus boxes, links and the ring size.
+
+    The ring size is an array entry rather than a compile-time constant, so one short
+    stack kernel serves every size.
+    """
     t = layout.arrays()
     return StacklessArrays(
         t.node_f, t.node_i, t.leaf_first, t.leaf_count, t.tri, t.tri_prim, t.root_box,
         np.zeros((1, 6), np.float32) if box is None else box,
         np.zeros(1, np.int32) if link is None else link,
+        np.array([ring_size], np.int32),
     )  # fmt: skip
 
 
@@ -413,7 +422,7 @@ rope_walk = cpu_inline(rope_walk_py)
 
 
 def make_scratch_py(kd):
-    """Return one worker's short-stack ring (node, segment start and end)."""
+    """Return one worker's short-stack ring (node, segment start and end), at its largest size."""
     ring_node = np.empty(STACK_SIZE, dtype=np.int32)
     ring_tn = np.empty(STACK_SIZE, dtype=np.float32)
     ring_tf = np.empty(STACK_SIZE, dtype=np.float32)
@@ -424,15 +433,16 @@ make_scratch = cpu_inline(make_scratch_py)
 
 
 @functools.cache
-def _body(method: int, size: int) -> Any:
-    """Return the per-chunk body of one method (``size``: the short stack's ring)."""
+def _body(method: int) -> Any:
+    """Return the per-chunk body of one method."""
 
     def trace_rays_py(
         kd, scratch, origin, direction, tmin, tmax, begin, end,
         hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
     ):  # fmt: skip
-        _ = (method, size)
+        _ = method
         ring_node, ring_tn, ring_tf = scratch
+        size = np.int64(kd.ring_size[0])
         node_f = kd.node_f
         node_i = kd.node_i
         n_leaf_total = kd.leaf_first.shape[0]
@@ -638,6 +648,6 @@ def _body(method: int, size: int) -> Any:
 
 
 @functools.cache
-def trace_kernel(method: int, size: int) -> Any:
-    """Return ``kernel_for(query, with_stats, parallel)`` of one method (and ring size)."""
-    return body_kernels(make_scratch, _body(method, size))
+def trace_kernel(method: int) -> Any:
+    """Return ``kernel_for(query, with_stats, parallel)`` of one method."""
+    return body_kernels(make_scratch, _body(method))
