@@ -199,6 +199,7 @@ class _CompileLog:
     Set ``RAYACCEL_COMPILE_LOG=FILE`` to write, at the end of the session, a JSON file of
     the outermost compilations: seconds per kernel and per test. CI time is mostly
     compilation on a cold cache; this says which kernels and which tests pay for it.
+    Under pytest-xdist each worker writes its own file, ``FILE.<worker>``.
     """
 
     def __init__(self, path: str) -> None:
@@ -244,8 +245,12 @@ class _CompileLog:
              "tests": top(self.tests)}, indent=1))
 
 
-_COMPILE_LOG = (_CompileLog(os.environ["RAYACCEL_COMPILE_LOG"])
-                if os.environ.get("RAYACCEL_COMPILE_LOG") else None)
+_COMPILE_LOG = (
+    _CompileLog(os.environ["RAYACCEL_COMPILE_LOG"]
+                + (f".{os.environ['PYTEST_XDIST_WORKER']}"
+                   if os.environ.get("PYTEST_XDIST_WORKER") else ""))
+    if os.environ.get("RAYACCEL_COMPILE_LOG") else None
+)
 
 
 def pytest_runtest_logstart(nodeid: str, location: tuple) -> None:
