@@ -89,6 +89,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.grid.builders.uniform",
     "rayaccel.grid.builders.skip",
     "rayaccel.grid.builders.two_level",
+    "rayaccel.grid.builders.irregular",
     "rayaccel.grid.traverse.dda",
 )
 

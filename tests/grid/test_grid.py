@@ -5,10 +5,13 @@ Registry conformance (tests/test_conformance.py) already runs every grid build k
 also traced with ``grid.skip`` (their own traversal), on the edge cases of issue 17:
 rays along cell boundaries and grid faces, origins inside, on and outside the grid,
 axis-parallel rays with ±0.0 components, a flat scene, a single triangle, 100k copies
-of one triangle, and the teapot in a stadium.
+of one triangle, and the teapot in a stadium. The irregular grid's merge and expansion
+are checked against their invariants.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -16,9 +19,15 @@ import pytest
 import rayaccel
 import reference
 from rayaccel.errors import InvalidInputError, StructureInvariantError
-from rayaccel.grid.builders.skip import chessboard_distance, macro_regions
+from rayaccel.grid.builders.skip import chessboard_distance, macro_regions, mip_bits
 from rayaccel.grid.builders.uniform import UniformGridOptions, grid_resolution
-from rayaccel.grid.layouts.uniform import SKIP_DISTANCE, SKIP_MACRO, UniformGrid
+from rayaccel.grid.layouts.uniform import (
+    SKIP_DISTANCE,
+    SKIP_MACRO,
+    SKIP_MIPMAP,
+    UniformGrid,
+    mip_levels_needed,
+)
 from rayaccel.rays.batch import RayBatch
 
 #: (builder, traversal): each skipping builder with the traversal that reads its data.
@@ -27,8 +36,10 @@ PAIRS = [
     pytest.param("grid.uniform", "grid.dda", id="uniform-dda"),
     pytest.param("grid.distance", "grid.skip", id="distance-skip"),
     pytest.param("grid.macro_regions", "grid.skip", id="macro-skip"),
+    pytest.param("grid.mipmap", "grid.skip", id="mipmap-skip"),
     pytest.param("grid.two_level", "grid.dda", id="two_level-dda"),
     pytest.param("grid.two_level+distance", "grid.skip", id="two_level_distance-skip"),
+    pytest.param("grid.irregular", "grid.dda", id="irregular-dda"),
 ]
 _ACCELS: dict = {}
 
@@ -59,12 +70,13 @@ def _check(accel, rays: RayBatch, traversal: str, label: str = "") -> None:
 
 def _boundary_rays(accel, n: int, seed: int) -> RayBatch:
     """Rays in cell-boundary planes and grid faces, axis-parallel with ±0.0 components,
-    with origins on cell corners, on the grid box and outside it."""
+    with origins on cell (or voxel) corners, on the grid box and outside it."""
     grid = getattr(accel.structure, "top", accel.structure)
     rng = np.random.default_rng(seed)
     lo = grid.lo.astype(np.float32)
-    size = ((grid.hi - grid.lo) / grid.res).astype(np.float32)
-    res = grid.res
+    res = getattr(grid, "fine_res", None)  # the irregular grid's voxels
+    res = grid.res if res is None else res
+    size = ((grid.hi - grid.lo) / res).astype(np.float32)
     origins = []
     dirs = []
     for _ in range(n):
@@ -116,7 +128,7 @@ def test_info_and_validate(scenes_cache):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_skip_data_matches_definition(seed):
-    """Distance field (brute force) and macro regions (empty, containing) on random grids."""
+    """Distance field, macro regions and mip levels against their definitions on random grids."""
     rng = np.random.default_rng(seed)
     res = rng.integers(1, 12, size=3).astype(np.int32)
     n_cells = int(np.prod(res))
@@ -130,9 +142,28 @@ def test_skip_data_matches_definition(seed):
     lo = np.zeros(3, np.float32)
     hi = np.ones(3, np.float32)
     rx, ry, rz = (int(r) for r in res)
+    top = mip_levels_needed(res)
+    bits = mip_bits(cell_start, rx, ry, rz, top)
     for kind, skip in ((SKIP_DISTANCE, chessboard_distance(cell_start, rx, ry, rz)),
-                       (SKIP_MACRO, macro_regions(cell_start, rx, ry, rz))):
+                       (SKIP_MACRO, macro_regions(cell_start, rx, ry, rz)),
+                       (SKIP_MIPMAP, bits)):
         UniformGrid(lo, hi, res, cell_start, prim_index, kind, skip, n).validate()
+    # The pyramid by brute force: bit m set iff the aligned 2^m block holds an occupied cell.
+    grid = occupied.reshape(rz, ry, rx)
+    for c in range(n_cells):
+        x, y, z = c % rx, (c // rx) % ry, c // (rx * ry)
+        expect = sum(
+            int(grid[(z >> m) << m:((z >> m) + 1) << m, (y >> m) << m:((y >> m) + 1) << m,
+                     (x >> m) << m:((x >> m) + 1) << m].any()) << m
+            for m in range(top + 1)
+        )  # fmt: skip
+        assert int(bits[c, 0]) & 0xFFFF == expect
+    assert (1 << top) >= max(rx, ry, rz)
+    assert top == 0 or (1 << (top - 1)) < max(rx, ry, rz)
+    flipped = bits.copy()
+    flipped[int(rng.integers(0, n_cells)), 0] ^= 1 << int(rng.integers(0, top + 1))
+    with pytest.raises(StructureInvariantError, match="mip-map bits"):
+        UniformGrid(lo, hi, res, cell_start, prim_index, SKIP_MIPMAP, flipped, n).validate()
 
 
 @pytest.mark.parametrize(("builder", "traversal"), PAIRS)
@@ -158,7 +189,7 @@ def test_flat_scene(builder, traversal):
     accel = _build(mesh, builder)
     accel.validate()
     grid = getattr(accel.structure, "top", accel.structure)
-    assert grid.res[2] == 1
+    assert getattr(grid, "top_res", getattr(grid, "res", None))[2] == 1
     lo, hi = mesh.bounds()
     rng = np.random.default_rng(1)
     n = 300
@@ -204,3 +235,53 @@ def test_two_level_leaves_and_cap():
     assert info["n_leaf_cells"] >= info["n_cells"]
     with pytest.raises(InvalidInputError, match="max_cells"):
         rayaccel.build(mesh, "grid.two_level", leaf_density=1000.0, max_cells=2000)
+
+
+@pytest.mark.parametrize("builder", ["grid.distance", "grid.macro_regions", "grid.mipmap"])
+def test_skipping_visits_fewer_cells(scenes_cache, builder):
+    """On the teapot in a stadium every skipping grid enters fewer cells than the plain DDA."""
+    rays = reference.mixed_rays(scenes_cache.mesh("teapot-in-stadium"), 300, seed=12)
+    plain = scenes_cache.accel("grid.uniform", "teapot-in-stadium")
+    skipping = scenes_cache.accel(builder, "teapot-in-stadium")
+    walked = plain.trace(rays, traversal="grid.dda", stats=True).stats
+    jumped = skipping.trace(rays, traversal="grid.skip", stats=True).stats
+    assert jumped["cells"].sum() < 0.8 * walked["cells"].sum()
+    assert walked["vertical_steps"].sum() == 0
+    climbed = jumped["vertical_steps"]
+    assert (climbed.sum() > 0) == (builder == "grid.mipmap")
+    assert (climbed <= 15 * jumped["empty_cells"]).all()
+
+
+def test_irregular_merges_expands_and_validates():
+    """Merging lowers the cell count, expansion moves faces, and broken grids are rejected."""
+    mesh = reference.icosphere(3)
+    accel = rayaccel.build(mesh, "grid.irregular")
+    grid = accel.structure
+    grid.validate(accel.mesh.triangles())
+    stats = accel.info()["build_stats"]
+    assert grid.n_cells < stats["leaves"]
+    assert stats["cells_per_round"][0] == stats["leaves"]
+    assert stats["faces_moved"] > 0
+    assert (grid.cell_exit[:, :3] <= grid.cell_box[:, :3]).all()
+    assert (grid.cell_exit != grid.cell_box).any()
+    plain = rayaccel.build(mesh, "grid.irregular", merge_threshold=0.0, expansion_passes=0)
+    assert plain.structure.n_cells == stats["leaves"]
+    assert np.array_equal(plain.structure.cell_exit, plain.structure.cell_box)
+    rays = reference.mixed_rays(mesh, 500, seed=21)
+    for variant in (accel, plain):
+        _check(variant, rays, "grid.dda", "irregular")
+    # An expanded box over a cell whose triangles its cell does not list.
+    counts = np.diff(grid.cell_start)
+    c = int(np.argmin(counts))
+    whole = grid.cell_exit.copy()
+    whole[c, :3] = 0
+    whole[c, 3:] = grid.fine_res
+    broken = dataclasses.replace(grid, cell_exit=whole)
+    with pytest.raises(StructureInvariantError, match="expanded box covers"):
+        broken.validate(accel.mesh.triangles())
+    moved = grid.cell_of_leaf.copy()
+    moved[0] = (moved[0] + 1) % grid.n_cells
+    with pytest.raises(StructureInvariantError, match="leaf"):
+        dataclasses.replace(grid, cell_of_leaf=moved).validate()
+    with pytest.raises(InvalidInputError, match="merge_threshold"):
+        rayaccel.build(mesh, "grid.irregular", merge_threshold=1.5)

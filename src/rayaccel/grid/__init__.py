@@ -8,6 +8,7 @@ sum, a fill and one sort), at the price of cells that are empty or crowded.
 
 Chapters: :mod:`~rayaccel.grid.layouts` (the canonical ``grid`` structure and the
 traversal layout), :mod:`~rayaccel.grid.builders` (``grid.uniform`` and the skipping
-variants ``grid.distance``, ``grid.macro_regions``) and
+variants ``grid.distance``, ``grid.macro_regions``, ``grid.mipmap``; ``grid.two_level``
+and ``grid.irregular``) and
 :mod:`~rayaccel.grid.traverse` (``grid.dda``, ``grid.skip``).
 """

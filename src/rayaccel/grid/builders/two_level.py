@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import prange
@@ -228,34 +228,55 @@ def _cells_to_coarsen(
     return shrink if shrink.any() else None
 
 
-@register(
-    "builder",
-    "grid.two_level",
-    options=TwoLevelOptions,
-    summary="two-level grid: λ1 top grid, per-cell λ2 sub-grids, one sort for all leaves",
-    reference="Kalojanov, Billeter, Slusallek 2011, Two-Level Grids for Ray Tracing on GPUs",
-)
-def build_two_level_grid(
-    mesh: TriangleMesh, options: TwoLevelOptions | None = None
-) -> TwoLevelGrid:
-    """Build a two-level grid over ``mesh``'s triangles (see the module docstring).
+def top_level(
+    mesh: TriangleMesh, opts: Any, key: str
+) -> tuple[Any, np.ndarray, dict[str, float], np.ndarray]:
+    """Build the top grid of density ``opts.top_density`` (two-level and irregular grids).
 
-    Raises
-    ------
-    InvalidInputError
-        A density asks for more cells than ``max_cells`` or memory allows.
+    Returns the grid, the triangles ``(F, 3, 3)``, the phases (``top_*``) and each top
+    cell's leaf resolution by ``opts.leaf_density`` (:func:`sub_resolutions`).
     """
-    opts = options or TwoLevelOptions()
     top_opts = UniformGridOptions(
         opts.top_density, opts.max_cells, opts.max_refs, opts.max_refs_per_prim
     )
-    top, tri = build_uniform(mesh, top_opts, "grid.two_level")
+    top, tri = build_uniform(mesh, top_opts, key)
     phases = {f"top_{k}": v for k, v in top.phase_ms.items()}
+    size = ((top.hi - top.lo) / top.res).astype(REAL)
+    sub_res = sub_resolutions(size, np.diff(top.cell_start), opts.leaf_density)
+    return top, tri, phases, sub_res
+
+
+class LeafLevel(NamedTuple):
+    """The leaf level of a two-level grid: sub-grids, their cell ranges and references."""
+
+    sub_res: np.ndarray
+    leaf_first: np.ndarray
+    leaf_size: np.ndarray
+    leaf_start: np.ndarray
+    prim_index: np.ndarray
+
+
+def leaf_level(
+    top: Any,
+    tri: np.ndarray,
+    sub_res: np.ndarray,
+    opts: Any,
+    asked: str,
+    phases: dict[str, float],
+) -> LeafLevel:
+    """Bin every top cell's references into its sub-grid of ``sub_res`` cells, one sort.
+
+    Sub-grids are first halved where the references would exceed the budget
+    (:func:`_cells_to_coarsen`); ``opts`` gives ``max_cells``, ``max_refs`` and
+    ``max_refs_per_prim``; ``asked`` names what asked for the cells in the error;
+    ``phases`` receives build milliseconds. Used by ``grid.two_level`` and
+    ``grid.irregular``.
+    """
     t0 = time.perf_counter()
+    sub_res = sub_res.copy()
     n_top = top.n_cells
     counts = np.diff(top.cell_start)
     size = ((top.hi - top.lo) / top.res).astype(REAL)
-    sub_res = sub_resolutions(size, counts, opts.leaf_density)
     top_of_ref = np.repeat(np.arange(n_top, dtype=np.int64), counts)
     n_ref = top.n_refs
     offsets = np.empty(n_ref, dtype=np.int64)
@@ -274,8 +295,8 @@ def build_two_level_grid(
     n_leaves = int(leaf_first64[-1])
     if n_leaves > opts.max_cells:
         raise InvalidInputError(
-            f"grid.two_level: leaf density λ2={opts.leaf_density} asks for {n_leaves} leaf "
-            f"cells, more than max_cells={opts.max_cells}; lower it or raise max_cells"
+            f"{asked} asks for {n_leaves} leaf cells, more than "
+            f"max_cells={opts.max_cells}; lower it or raise max_cells"
         )
     leaf_first = leaf_first64.astype(INDEX)
     leaf_size, margin = _leaf_geometry(top, size, sub_res)
@@ -287,7 +308,7 @@ def build_two_level_grid(
     total = np.cumsum(offsets)
     n_pairs = int(total[-1]) if n_ref else 0
     if n_pairs > 2**31 - 1:
-        raise InvalidInputError(f"grid.two_level: {n_pairs} leaf references exceed int32")
+        raise InvalidInputError(f"{asked}: {n_pairs} leaf references exceed int32")
     starts = np.empty(n_ref, dtype=np.int64)
     if n_ref:
         starts[0] = 0
@@ -302,6 +323,32 @@ def build_two_level_grid(
     t1 = time.perf_counter()
     leaf_start = cell_ranges(keys, n_leaves)
     phases["leaf_ranges"] = (time.perf_counter() - t1) * 1e3
+    return LeafLevel(
+        sub_res, leaf_first, leaf_size, leaf_start, np.ascontiguousarray(values, dtype=INDEX)
+    )
+
+
+@register(
+    "builder",
+    "grid.two_level",
+    options=TwoLevelOptions,
+    summary="two-level grid: λ1 top grid, per-cell λ2 sub-grids, one sort for all leaves",
+    reference="Kalojanov, Billeter, Slusallek 2011, Two-Level Grids for Ray Tracing on GPUs",
+)
+def build_two_level_grid(
+    mesh: TriangleMesh, options: TwoLevelOptions | None = None
+) -> TwoLevelGrid:
+    """Build a two-level grid over ``mesh``'s triangles (see the module docstring).
+
+    Raises
+    ------
+    InvalidInputError
+        A density asks for more cells than ``max_cells`` or memory allows.
+    """
+    opts = options or TwoLevelOptions()
+    top, tri, phases, sub_res = top_level(mesh, opts, "grid.two_level")
+    asked = f"grid.two_level: leaf density λ2={opts.leaf_density}"
+    leaves = leaf_level(top, tri, sub_res, opts, asked, phases)
     if opts.skip == "distance":
         t1 = time.perf_counter()
         rx, ry, rz = (int(r) for r in top.res)
@@ -310,11 +357,11 @@ def build_two_level_grid(
         phases["skip"] = (time.perf_counter() - t1) * 1e3
     return TwoLevelGrid(
         top=top,
-        sub_res=sub_res,
-        leaf_first=leaf_first,
-        leaf_size=leaf_size,
-        leaf_start=leaf_start,
-        prim_index=np.ascontiguousarray(values, dtype=INDEX),
+        sub_res=leaves.sub_res,
+        leaf_first=leaves.leaf_first,
+        leaf_size=leaves.leaf_size,
+        leaf_start=leaves.leaf_start,
+        prim_index=leaves.prim_index,
         n_prims=top.n_prims,
         leaf_density=float(opts.leaf_density),
         phase_ms=phases,

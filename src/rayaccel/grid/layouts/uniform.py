@@ -17,6 +17,11 @@ Skip data (``skip_kind``, ``skip``)
     non-empty cell), so the cube of cells within ``skip[c, 0] - 1`` of ``c`` is empty.
     ``SKIP_MACRO``: ``skip[c] = (x0, y0, z0, x1, y1, z1)`` is an empty box of cells
     containing ``c`` (inclusive bounds; the cell itself when it is not empty).
+    ``SKIP_MIPMAP``: the cell's column of the occupancy mip-map, as bits: bit ``m`` of
+    ``skip[c, 0]`` (read as uint16) is set when the level-``m`` block holding ``c``,
+    the aligned ``2^m`` cells per axis (:func:`mip_block`, cut at the grid's end),
+    holds a non-empty cell; levels ``0..``:func:`mip_levels_needed`, the last one
+    covering the grid.
 
 Traversal layout (:class:`GridTrace`, :func:`trace_layout`)
     The box interleaved as ``(lo_x, hi_x, lo_y, hi_y, lo_z, hi_z)`` (the root box of
@@ -42,9 +47,13 @@ from rayaccel.errors import StructureInvariantError
 SKIP_NONE = 0
 SKIP_DISTANCE = 1
 SKIP_MACRO = 2
-SKIP_NAMES = {SKIP_NONE: "none", SKIP_DISTANCE: "distance", SKIP_MACRO: "macro_regions"}
+SKIP_MIPMAP = 3
+SKIP_NAMES = {
+    SKIP_NONE: "none", SKIP_DISTANCE: "distance", SKIP_MACRO: "macro_regions",
+    SKIP_MIPMAP: "mipmap",
+}  # fmt: skip
 #: Columns of ``skip`` per kind.
-SKIP_COLUMNS = {SKIP_NONE: 0, SKIP_DISTANCE: 1, SKIP_MACRO: 6}
+SKIP_COLUMNS = {SKIP_NONE: 0, SKIP_DISTANCE: 1, SKIP_MACRO: 6, SKIP_MIPMAP: 1}
 
 #: The grid box is the scene box widened by this fraction of its largest extent.
 BOX_MARGIN = 2.0**-16
@@ -56,6 +65,23 @@ MAX_RES_AXIS = 32767
 CELL_BYTES = 4
 REF_BYTES = 4
 TRIANGLE_BYTES = 36
+
+
+def mip_levels_needed(res: IntArray) -> int:
+    """Return the mip-map's coarsest level: the first whose one block covers the grid (≤ 15)."""
+    return int(np.ceil(np.log2(max(int(res.max()), 1))))
+
+
+def mip_block(
+    cell: np.ndarray, level: np.ndarray, res: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return the inclusive bounds ``(lo, hi)`` of the aligned ``2^level`` block holding ``cell``.
+
+    Works elementwise on integer arrays: ``lo = (cell >> level) << level`` and ``hi =
+    lo + 2^level - 1`` cut at ``res - 1``.
+    """
+    lo = (cell >> level) << level
+    return lo, np.minimum(lo + (1 << level) - 1, res - 1)
 
 
 def cell_margin(lo: FloatArray, hi: FloatArray, res: IntArray) -> FloatArray:
@@ -113,7 +139,7 @@ class UniformGrid:
     prim_index : (n_refs,) int32
         Primitive ids in cell order, increasing within a cell.
     skip_kind : int
-        ``SKIP_NONE``, ``SKIP_DISTANCE`` or ``SKIP_MACRO``.
+        ``SKIP_NONE``, ``SKIP_DISTANCE``, ``SKIP_MACRO`` or ``SKIP_MIPMAP``.
     skip : (n_cells, SKIP_COLUMNS[skip_kind]) int16
         The skip data of ``skip_kind``.
     n_prims : int
@@ -181,16 +207,11 @@ class UniformGrid:
         Checks: dtypes and shapes; resolution in range; ``cell_start`` starts at 0, ends
         at ``n_refs`` and never decreases; ids in range, increasing within each cell, and
         every primitive listed; the skip data of its kind (distances and macro boxes
-        empty and containing their cell); and, given ``triangles (F, 3, 3)``, every
-        triangle inside the grid box and every listed triangle's box overlapping its
-        widened cell.
+        empty and containing their cell, mip-map bits those of the occupancy); and, given
+        ``triangles (F, 3, 3)``, every triangle inside the grid box and every listed
+        triangle's box overlapping its widened cell.
         """
-        for name in ("lo", "hi"):
-            a = getattr(self, name)
-            if a.dtype != REAL or a.shape != (3,) or not np.isfinite(a).all():
-                raise StructureInvariantError(f"grid: {name} must be finite float32 (3,)")
-        if not (self.lo < self.hi).all():
-            raise StructureInvariantError("grid: box has lo >= hi on some axis")
+        validate_box(self.lo, self.hi)
         if self.res.dtype != INDEX or self.res.shape != (3,):
             raise StructureInvariantError("grid: res must be int32 (3,)")
         if (self.res < 1).any() or (self.res > MAX_RES_AXIS).any():
@@ -233,22 +254,47 @@ class UniformGrid:
                 raise StructureInvariantError("grid: distance 0 iff the cell is non-empty")
             if occupied.size <= 4096:
                 _check_distance_brute(occupied, dist)
-        elif self.skip_kind == SKIP_MACRO:
-            box = self.skip.astype(np.int64)
+        elif self.skip_kind in (SKIP_MACRO, SKIP_MIPMAP):
             cells = np.arange(self.n_cells, dtype=np.int64)
             rx, ry = int(self.res[0]), int(self.res[1])
             xyz = np.stack([cells % rx, (cells // rx) % ry, cells // (rx * ry)], axis=1)
-            if ((box[:, :3] > xyz) | (box[:, 3:] < xyz) | (box[:, :3] < 0)).any() or (
-                box[:, 3:] >= self.res
-            ).any():
-                raise StructureInvariantError("grid: a macro region does not contain its cell")
             table = _summed_volume(occupied)
-            inside = _box_sum(table, box)
             empty = counts == 0
-            if (inside[empty] != 0).any():
-                raise StructureInvariantError("grid: a macro region holds a non-empty cell")
+            if self.skip_kind == SKIP_MACRO:
+                box = self.skip.astype(np.int64)
+                if ((box[:, :3] > xyz) | (box[:, 3:] < xyz) | (box[:, :3] < 0)).any() or (
+                    box[:, 3:] >= self.res
+                ).any():
+                    raise StructureInvariantError("grid: a macro region does not contain its cell")
+                name = "macro region"
+            else:
+                box = self._validate_mip_levels(xyz, empty, table)
+                name = "mip-map block"
+            if (_box_sum(table, box)[empty] != 0).any():
+                raise StructureInvariantError(f"grid: a {name} holds a non-empty cell")
             if (box[~empty, :3] != xyz[~empty]).any() or (box[~empty, 3:] != xyz[~empty]).any():
-                raise StructureInvariantError("grid: a non-empty cell's region is not itself")
+                raise StructureInvariantError(f"grid: a non-empty cell's {name} is not itself")
+
+    def _validate_mip_levels(
+        self, xyz: np.ndarray, empty: np.ndarray, table: np.ndarray
+    ) -> np.ndarray:
+        """Check every cell's pyramid bits; return the coarsest empty block of each cell."""
+        bits = self.skip[:, 0].astype(np.int64) & 0xFFFF
+        top = mip_levels_needed(self.res)
+        res = self.res.astype(np.int64)
+        expect = np.zeros_like(bits)
+        for m in range(top + 1):
+            lo, hi = mip_block(xyz, np.full((1, 1), m), res)
+            full = _box_sum(table, np.concatenate([lo, hi], axis=1)) > 0
+            expect |= full.astype(np.int64) << m
+        if not np.array_equal(bits, expect):
+            raise StructureInvariantError("grid: mip-map bits differ from the occupancy")
+        # The climb's level: the last of the clear bits from bit 0 (0 for a non-empty cell).
+        climb = np.zeros_like(bits)
+        for m in range(1, top + 1):
+            climb = np.where((climb == m - 1) & empty & ((bits >> m) & 1 == 0), m, climb)
+        lo, hi = mip_block(xyz, climb[:, None], res)
+        return np.concatenate([lo, hi], axis=1)
 
     def _validate_geometry(self, triangles: FloatArray, cell_of_ref: np.ndarray) -> None:
         t_lo = triangles.min(axis=1)
@@ -274,6 +320,15 @@ class UniformGrid:
                 f"grid: triangle {int(self.prim_index[ref])} listed in cell "
                 f"{int(cell_of_ref[ref])} it does not overlap"
             )
+
+
+def validate_box(lo: FloatArray, hi: FloatArray) -> None:
+    """Check a grid box: finite float32 ``(3,)`` corners with ``lo < hi`` on every axis."""
+    for name, a in (("lo", lo), ("hi", hi)):
+        if a.dtype != REAL or a.shape != (3,) or not np.isfinite(a).all():
+            raise StructureInvariantError(f"grid: {name} must be finite float32 (3,)")
+    if not (lo < hi).all():
+        raise StructureInvariantError("grid: box has lo >= hi on some axis")
 
 
 def _summed_volume(occupied: np.ndarray) -> np.ndarray:

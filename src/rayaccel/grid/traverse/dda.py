@@ -20,21 +20,21 @@ neighbours by a margin, :func:`~rayaccel.grid.layouts.uniform.cell_margin`, whic
 covers the rounding of points and planes). Any-hit queries stop at the first hit.
 
 ``grid.skip`` additionally reads the grid's skip data: in an empty cell it jumps to the
-exit of the empty box the grid stores for it (the cube of the distance field, or the
-macro region) and re-enters at the cell beyond, computed exactly on the exit axis and
-clamped into the box on the others (the irregular grid's rule, Pérard-Gayot et al.
-2017), so it never lands past a non-empty cell. On a grid without skip data it is the
-plain DDA.
+exit of the empty box the grid stores for it (the cube of the distance field, the
+macro region, or the coarsest empty block of the occupancy mip-map) and re-enters at
+the cell beyond, computed exactly on the exit axis and clamped into the box on the
+others (the irregular grid's rule, Pérard-Gayot et al. 2017), so it never lands past
+a non-empty cell. On a grid without skip data it is the plain DDA.
 
 Counters (``with_stats``): ``steps`` cell steps and jumps, ``cells`` cells entered,
 ``empty_cells`` empty ones, ``prim_tests`` triangle tests, ``mailbox_hits`` tests
-saved by the mailbox, ``bytes`` 8 per cell range and 40 per triangle and id read.
+saved by the mailbox, ``vertical_steps`` mip-map levels climbed, ``bytes`` 8 per cell
+range and 40 per triangle and id read.
 """
 
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,16 +44,18 @@ from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
 from rayaccel.counters import Counter
 from rayaccel.errors import InvalidInputError
+from rayaccel.grid.layouts.irregular import IrregularGrid
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import (
     SKIP_DISTANCE,
+    SKIP_MACRO,
     SKIP_NONE,
     GridTrace,
     UniformGrid,
     trace_layout,
     with_mailbox,
 )
-from rayaccel.kernels.triangle import ray_triangle
+from rayaccel.grid.traverse.walk import exit_plane, intersect_cell, leave_box, start_cell
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
@@ -63,8 +65,6 @@ from rayaccel.trace.skeleton import store_hit
 
 INF32 = np.float32(np.inf)
 ZERO32 = np.float32(0.0)
-#: The start cell is biased this fraction of a cell against the direction.
-START_BIAS = np.float32(2.0**-12)
 MAX_MAILBOX = 64
 _CELL_BYTES = 8
 _PRIM_BYTES = 40
@@ -92,28 +92,6 @@ def make_scratch_py(grid):
     return np.empty(max(grid.mailbox[0], 1), dtype=np.int32)
 
 
-def start_cell_py(p, lo, inv_size, res, d):
-    """Cell of coordinate ``p`` on one axis, biased against ``d``, clamped to the grid."""
-    f = (p - lo) * inv_size
-    if d > 0:
-        f -= START_BIAS
-    elif d < 0:
-        f += START_BIAS
-    f = min(max(f, np.float32(0.0)), np.float32(res - 1))
-    return np.int32(math.floor(f))
-
-
-def exit_plane_py(lo, size, o, inv, cell, step):
-    """Distance to the plane a ray leaves ``cell`` through on one axis (inf if no step)."""
-    if step > 0:
-        return (lo + np.float32(cell + 1) * size - o) * inv
-    if step < 0:
-        return (lo + np.float32(cell) * size - o) * inv
-    return INF32
-
-
-start_cell = cpu_inline(start_cell_py)
-exit_plane = cpu_inline(exit_plane_py)
 
 
 @functools.cache
@@ -151,6 +129,7 @@ def trace_body(skip: bool) -> Any:
             n_empty = 0
             n_prim = 0
             n_mailbox = 0
+            n_vertical = 0
             n_bytes = 0
             (
                 valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
@@ -200,104 +179,47 @@ def trace_body(skip: bool) -> Any:
                                 bx1 = min(cx + k, rx - 1)
                                 by1 = min(cy + k, ry - 1)
                                 bz1 = min(cz + k, rz - 1)
-                            else:
+                            elif skip_kind == SKIP_MACRO:
                                 bx0 = np.int32(grid.skip[cell, 0])
                                 by0 = np.int32(grid.skip[cell, 1])
                                 bz0 = np.int32(grid.skip[cell, 2])
                                 bx1 = np.int32(grid.skip[cell, 3])
                                 by1 = np.int32(grid.skip[cell, 4])
                                 bz1 = np.int32(grid.skip[cell, 5])
-                            far_x = bx1 if step_x > 0 else bx0
-                            far_y = by1 if step_y > 0 else by0
-                            far_z = bz1 if step_z > 0 else bz0
-                            tbx = exit_plane(lox, sx, ox, ix, far_x, step_x)
-                            tby = exit_plane(loy, sy, oy, iy, far_y, step_y)
-                            tbz = exit_plane(loz, sz, oz, iz, far_z, step_z)
-                            t_box = min(tbx, tby, tbz)
-                            if t_box >= t_hit + pad:
+                            else:
+                                # Mip-map: climb while the block one level up is empty.
+                                bits = np.int32(grid.skip[cell, 0]) & 0xFFFF
+                                m = 0
+                                while m < 15 and not (bits >> (m + 1)) & 1:
+                                    m += 1
+                                if with_stats:
+                                    n_vertical += m
+                                bx0 = (cx >> m) << m
+                                by0 = (cy >> m) << m
+                                bz0 = (cz >> m) << m
+                                bx1 = min(bx0 + (1 << m) - 1, rx - 1)
+                                by1 = min(by0 + (1 << m) - 1, ry - 1)
+                                bz1 = min(bz0 + (1 << m) - 1, rz - 1)
+                            moved, _t, cx, cy, cz = leave_box(
+                                bx0, by0, bz0, bx1, by1, bz1, cx, cy, cz, step_x, step_y,
+                                step_z, grid.lo, grid.size, grid.inv_size, grid.res,
+                                ox, oy, oz, ix, iy, iz, dx, dy, dz, t_hit + pad,
+                            )  # fmt: skip
+                            if not moved:
                                 break
-                            # Re-enter beyond the box: exact on the exit axis, the exit
-                            # point's cell (clamped into the box, never backwards) on
-                            # the others.
-                            if tbx <= tby and tbx <= tbz:
-                                nxc = far_x + step_x
-                                if nxc < 0 or nxc >= rx:
-                                    break
-                                nyc = start_cell(oy + t_box * dy, loy, grid.inv_size[1], ry, dy)
-                                nzc = start_cell(oz + t_box * dz, loz, grid.inv_size[2], rz, dz)
-                                nyc = min(max(nyc, by0), by1)
-                                nzc = min(max(nzc, bz0), bz1)
-                            elif tby <= tbz:
-                                nyc = far_y + step_y
-                                if nyc < 0 or nyc >= ry:
-                                    break
-                                nxc = start_cell(ox + t_box * dx, lox, grid.inv_size[0], rx, dx)
-                                nzc = start_cell(oz + t_box * dz, loz, grid.inv_size[2], rz, dz)
-                                nxc = min(max(nxc, bx0), bx1)
-                                nzc = min(max(nzc, bz0), bz1)
-                            else:
-                                nzc = far_z + step_z
-                                if nzc < 0 or nzc >= rz:
-                                    break
-                                nxc = start_cell(ox + t_box * dx, lox, grid.inv_size[0], rx, dx)
-                                nyc = start_cell(oy + t_box * dy, loy, grid.inv_size[1], ry, dy)
-                                nxc = min(max(nxc, bx0), bx1)
-                                nyc = min(max(nyc, by0), by1)
-                            # Never step against the direction.
-                            if step_x > 0:
-                                nxc = max(nxc, cx)
-                            elif step_x < 0:
-                                nxc = min(nxc, cx)
-                            else:
-                                nxc = cx
-                            if step_y > 0:
-                                nyc = max(nyc, cy)
-                            elif step_y < 0:
-                                nyc = min(nyc, cy)
-                            else:
-                                nyc = cy
-                            if step_z > 0:
-                                nzc = max(nzc, cz)
-                            elif step_z < 0:
-                                nzc = min(nzc, cz)
-                            else:
-                                nzc = cz
-                            cx = nxc
-                            cy = nyc
-                            cz = nzc
                             tnx = exit_plane(lox, sx, ox, ix, cx, step_x)
                             tny = exit_plane(loy, sy, oy, iy, cy, step_y)
                             tnz = exit_plane(loz, sz, oz, iz, cz, step_z)
                             continue
-                        for i in range(first, last):
-                            p = tri_prim[i]
-                            seen = False
-                            for m in range(n_mail):
-                                if mailbox[m] == p:
-                                    seen = True
-                                    break
-                            if seen:
-                                if with_stats:
-                                    n_mailbox += 1
-                                continue
-                            if n_mail > 0:
-                                mailbox[slot] = p
-                                slot += 1
-                                if slot == n_mail:
-                                    slot = 0
-                            t, u, v = ray_triangle(
-                                tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit
-                            )
-                            if with_stats:
-                                n_prim += 1
-                                n_bytes += _PRIM_BYTES
-                            if t < t_hit:
-                                t_hit = t
-                                best_prim = p
-                                best_u = u
-                                best_v = v
-                                if query == QUERY_ANY:
-                                    break
+                        t_hit, best_prim, best_u, best_v, slot, tested, saved = intersect_cell(
+                            tri, tri_prim, first, last, mailbox, n_mail, slot, okx, oky, okz,
+                            kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                            query == QUERY_ANY,
+                        )  # fmt: skip
+                        if with_stats:
+                            n_prim += tested
+                            n_mailbox += saved
+                            n_bytes += _PRIM_BYTES * tested
                         if query == QUERY_ANY and best_prim >= 0:
                             break
                         # Step to the next cell unless every hit so far lies before it.
@@ -328,6 +250,7 @@ def trace_body(skip: bool) -> Any:
                 counters[r, Counter.EMPTY_CELLS] = n_empty
                 counters[r, Counter.PRIM_TESTS] = n_prim
                 counters[r, Counter.MAILBOX_HITS] = n_mailbox
+                counters[r, Counter.VERTICAL_STEPS] = n_vertical
                 counters[r, Counter.BYTES] = n_bytes
             store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
         return 0
@@ -353,7 +276,7 @@ def grid_layout(
 
 
 def _trace(
-    grid: UniformGrid | TwoLevelGrid,
+    grid: UniformGrid | TwoLevelGrid | IrregularGrid,
     mesh: TriangleMesh,
     rays: RayBatch,
     query: str,
@@ -363,6 +286,10 @@ def _trace(
     skip: bool,
 ) -> HitBatch:
     opts = options or DdaOptions()
+    if isinstance(grid, IrregularGrid):
+        from rayaccel.grid.traverse.irregular import trace_irregular
+
+        return trace_irregular(grid, mesh, rays, query, stats, opts.mailbox, cache)
     if isinstance(grid, TwoLevelGrid):
         from rayaccel.grid.traverse import two_level  # (imports this module)
 
@@ -381,7 +308,7 @@ def _trace(
     reference="Amanatides & Woo 1987, A Fast Voxel Traversal Algorithm for Ray Tracing",
 )
 def trace_grid_dda(
-    grid: UniformGrid | TwoLevelGrid,
+    grid: UniformGrid | TwoLevelGrid | IrregularGrid,
     mesh: TriangleMesh,
     rays: RayBatch,
     *,
@@ -390,9 +317,10 @@ def trace_grid_dda(
     options: DdaOptions | None = None,
     cache: dict[str, Any] | None = None,
 ) -> HitBatch:
-    """Trace rays through a uniform grid cell by cell, or a two-level one DDA in DDA.
+    """Trace rays through a uniform grid cell by cell, a two-level one DDA in DDA.
 
-    Skip data is ignored.
+    Skip data is ignored. An irregular grid is walked cell by cell through its
+    expanded boxes (:mod:`rayaccel.grid.traverse.irregular`).
 
     Parameters
     ----------
@@ -418,11 +346,11 @@ def trace_grid_dda(
     "traversal",
     "grid.skip",
     options=DdaOptions,
-    summary="3D-DDA jumping over the grid's empty boxes (distance field or macro regions)",
+    summary="3D-DDA jumping over the grid's empty boxes (distance field, macro regions, mip-map)",
     reference="Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure",
 )
 def trace_grid_skip(
-    grid: UniformGrid | TwoLevelGrid,
+    grid: UniformGrid | TwoLevelGrid | IrregularGrid,
     mesh: TriangleMesh,
     rays: RayBatch,
     *,

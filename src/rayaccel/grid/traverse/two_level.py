@@ -25,8 +25,7 @@ from rayaccel._jit import cpu_inline
 from rayaccel.counters import Counter
 from rayaccel.grid.layouts.two_level import TwoLevelGrid, TwoLevelTrace, two_level_trace_layout
 from rayaccel.grid.layouts.uniform import SKIP_DISTANCE
-from rayaccel.grid.traverse.dda import exit_plane, start_cell
-from rayaccel.kernels.triangle import ray_triangle
+from rayaccel.grid.traverse.walk import exit_plane, intersect_cell, leave_box, start_cell
 from rayaccel.queries import QUERY_ANY
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
@@ -126,60 +125,13 @@ def trace_body(skip: bool) -> Any:
                                 bx1 = min(cx + k, rx - 1)
                                 by1 = min(cy + k, ry - 1)
                                 bz1 = min(cz + k, rz - 1)
-                                far_x = bx1 if step_x > 0 else bx0
-                                far_y = by1 if step_y > 0 else by0
-                                far_z = bz1 if step_z > 0 else bz0
-                                tbx = exit_plane(lox, sx, ox, ix, far_x, step_x)
-                                tby = exit_plane(loy, sy, oy, iy, far_y, step_y)
-                                tbz = exit_plane(loz, sz, oz, iz, far_z, step_z)
-                                t_box = min(tbx, tby, tbz)
-                                if t_box >= t_hit + pad:
+                                moved, t_box, cx, cy, cz = leave_box(
+                                    bx0, by0, bz0, bx1, by1, bz1, cx, cy, cz, step_x, step_y,
+                                    step_z, grid.lo, grid.size, grid.inv_size, grid.res,
+                                    ox, oy, oz, ix, iy, iz, dx, dy, dz, t_hit + pad,
+                                )  # fmt: skip
+                                if not moved:
                                     break
-                                if tbx <= tby and tbx <= tbz:
-                                    nxc = far_x + step_x
-                                    if nxc < 0 or nxc >= rx:
-                                        break
-                                    nyc = start_cell(oy + t_box * dy, loy, grid.inv_size[1], ry, dy)
-                                    nzc = start_cell(oz + t_box * dz, loz, grid.inv_size[2], rz, dz)
-                                    nyc = min(max(nyc, by0), by1)
-                                    nzc = min(max(nzc, bz0), bz1)
-                                elif tby <= tbz:
-                                    nyc = far_y + step_y
-                                    if nyc < 0 or nyc >= ry:
-                                        break
-                                    nxc = start_cell(ox + t_box * dx, lox, grid.inv_size[0], rx, dx)
-                                    nzc = start_cell(oz + t_box * dz, loz, grid.inv_size[2], rz, dz)
-                                    nxc = min(max(nxc, bx0), bx1)
-                                    nzc = min(max(nzc, bz0), bz1)
-                                else:
-                                    nzc = far_z + step_z
-                                    if nzc < 0 or nzc >= rz:
-                                        break
-                                    nxc = start_cell(ox + t_box * dx, lox, grid.inv_size[0], rx, dx)
-                                    nyc = start_cell(oy + t_box * dy, loy, grid.inv_size[1], ry, dy)
-                                    nxc = min(max(nxc, bx0), bx1)
-                                    nyc = min(max(nyc, by0), by1)
-                                if step_x > 0:
-                                    nxc = max(nxc, cx)
-                                elif step_x < 0:
-                                    nxc = min(nxc, cx)
-                                else:
-                                    nxc = cx
-                                if step_y > 0:
-                                    nyc = max(nyc, cy)
-                                elif step_y < 0:
-                                    nyc = min(nyc, cy)
-                                else:
-                                    nyc = cy
-                                if step_z > 0:
-                                    nzc = max(nzc, cz)
-                                elif step_z < 0:
-                                    nzc = min(nzc, cz)
-                                else:
-                                    nzc = cz
-                                cx = nxc
-                                cy = nyc
-                                cz = nzc
                                 tnx = exit_plane(lox, sx, ox, ix, cx, step_x)
                                 tny = exit_plane(loy, sy, oy, iy, cy, step_y)
                                 tnz = exit_plane(loz, sz, oz, iz, cz, step_z)
@@ -215,35 +167,17 @@ def trace_body(skip: bool) -> Any:
                                     n_bytes += _CELL_BYTES
                                     if first == last:
                                         n_empty += 1
-                                for i in range(first, last):
-                                    p = tri_prim[i]
-                                    seen = False
-                                    for m in range(n_mail):
-                                        if mailbox[m] == p:
-                                            seen = True
-                                            break
-                                    if seen:
-                                        if with_stats:
-                                            n_mailbox += 1
-                                        continue
-                                    if n_mail > 0:
-                                        mailbox[slot] = p
-                                        slot += 1
-                                        if slot == n_mail:
-                                            slot = 0
-                                    t, u, v = ray_triangle(
-                                        tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit
-                                    )
-                                    if with_stats:
-                                        n_prim += 1
-                                        n_bytes += _PRIM_BYTES
-                                    if t < t_hit:
-                                        t_hit = t
-                                        best_prim = p
-                                        best_u = u
-                                        best_v = v
-                                        if query == QUERY_ANY:
-                                            break
+                                (
+                                    t_hit, best_prim, best_u, best_v, slot, tested, saved,
+                                ) = intersect_cell(
+                                    tri, tri_prim, first, last, mailbox, n_mail, slot, okx, oky,
+                                    okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u,
+                                    best_v, query == QUERY_ANY,
+                                )  # fmt: skip
+                                if with_stats:
+                                    n_prim += tested
+                                    n_mailbox += saved
+                                    n_bytes += _PRIM_BYTES * tested
                                 if query == QUERY_ANY and best_prim >= 0:
                                     done = True
                                     break

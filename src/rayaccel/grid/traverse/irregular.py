@@ -1,0 +1,154 @@
+"""The irregular grid's cell walk (Pérard-Gayot, Kalojanov, Slusallek 2017).
+
+ALGORITHMS §7.5. The ray is clipped to the grid box (with the culling pad) and starts
+in the voxel of its entry point (:func:`~rayaccel.grid.traverse.walk.start_cell` on
+the virtual fine grid). Each step finds the voxel's cell by the voxel map
+(:func:`~rayaccel.grid.layouts.irregular.voxel_cell`), tests the cell's triangles
+(mailbox as in :mod:`~rayaccel.grid.traverse.dda`) and leaves the cell's *expanded*
+box (:func:`~rayaccel.grid.traverse.walk.leave_box`): the next voxel is exact on the
+exit axis and the exit point's voxel, clamped into the box, on the others. The walk
+ends when the closest hit lies before the box's exit (with the culling pad), when it
+leaves the grid, or at the first hit of an any-hit query. An expanded box holds only
+cells whose triangles its cell lists, so the cell's tests cover the ray's whole
+stretch through it.
+
+``grid.dda`` and ``grid.skip`` both walk an irregular grid this way. Counters
+(``with_stats``): ``steps`` and ``cells`` cells visited, ``empty_cells`` empty ones,
+``prim_tests``, ``mailbox_hits``, ``bytes`` (12 for the voxel map and cell range, 24
+for the expanded box, 40 per triangle and id read).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from rayaccel._jit import cpu_inline
+from rayaccel.counters import Counter
+from rayaccel.grid.layouts.irregular import IrregularGrid, IrregularTrace, trace_layout, voxel_cell
+from rayaccel.grid.traverse.walk import INF32, intersect_cell, leave_box, start_cell
+from rayaccel.queries import QUERY_ANY
+from rayaccel.rays.batch import HitBatch, RayBatch
+from rayaccel.scene.mesh import TriangleMesh
+from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
+from rayaccel.trace.skeleton import store_hit
+
+ZERO32 = np.float32(0.0)
+_CELL_BYTES = 36
+_PRIM_BYTES = 40
+
+
+def make_scratch_py(grid):
+    """Return one worker's mailbox ring (at least one slot, so the type is fixed)."""
+    return np.empty(max(grid.mailbox[0], 1), dtype=np.int32)
+
+
+def trace_rays_py(
+    grid, scratch, origin, direction, tmin, tmax, begin, end,
+    hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+):  # fmt: skip
+    """Trace rays ``begin:end`` through ``grid`` (IrregularTrace); return 0 (no stack)."""
+    mailbox = scratch
+    n_mail = grid.mailbox[0]
+    shift = grid.shift[0]
+    for r in range(begin, end):
+        n_cells = 0
+        n_empty = 0
+        n_prim = 0
+        n_mailbox = 0
+        (
+            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+        ) = ray_prologue(origin, direction, tmin, tmax, r, grid.box)  # fmt: skip
+        best_prim = -1
+        best_u = ZERO32
+        best_v = ZERO32
+        if valid:
+            t_start = root_entry(
+                grid.box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, t_lo - pad, t_hit + pad
+            )
+            if t_start != INF32:
+                dx = direction[r, 0]
+                dy = direction[r, 1]
+                dz = direction[r, 2]
+                for m in range(n_mail):
+                    mailbox[m] = -1
+                slot = 0
+                res = grid.fine_res
+                lo = grid.lo
+                inv = grid.inv_voxel
+                cx = np.int64(start_cell(ox + t_start * dx, lo[0], inv[0], res[0], dx))
+                cy = np.int64(start_cell(oy + t_start * dy, lo[1], inv[1], res[1], dy))
+                cz = np.int64(start_cell(oz + t_start * dz, lo[2], inv[2], res[2], dz))
+                step_x = 1 if dx > 0 else (-1 if dx < 0 else 0)
+                step_y = 1 if dy > 0 else (-1 if dy < 0 else 0)
+                step_z = 1 if dz > 0 else (-1 if dz < 0 else 0)
+                while True:
+                    cell = voxel_cell(
+                        cx, cy, cz, grid.top_res, shift, grid.depth, grid.leaf_first,
+                        grid.cell_of_leaf,
+                    )  # fmt: skip
+                    first = grid.cell_start[cell]
+                    last = grid.cell_start[cell + 1]
+                    t_hit, best_prim, best_u, best_v, slot, tested, saved = intersect_cell(
+                        grid.tri, grid.tri_prim, first, last, mailbox, n_mail, slot,
+                        okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
+                        best_prim, best_u, best_v, query == QUERY_ANY,
+                    )  # fmt: skip
+                    if with_stats:
+                        n_cells += 1
+                        if first == last:
+                            n_empty += 1
+                        n_prim += tested
+                        n_mailbox += saved
+                    if query == QUERY_ANY and best_prim >= 0:
+                        break
+                    e_lo = grid.exit_lo
+                    e_hi = grid.exit_hi
+                    moved, _t, cx, cy, cz = leave_box(
+                        e_lo[cell, 0], e_lo[cell, 1], e_lo[cell, 2], e_hi[cell, 0], e_hi[cell, 1],
+                        e_hi[cell, 2], cx, cy, cz, step_x, step_y, step_z, lo, grid.voxel, inv, res,
+                        ox, oy, oz, ix, iy, iz, dx, dy, dz, t_hit + pad,
+                    )  # fmt: skip
+                    if not moved:
+                        break
+        if with_stats:
+            counters[r, Counter.STEPS] = n_cells
+            counters[r, Counter.CELLS] = n_cells
+            counters[r, Counter.EMPTY_CELLS] = n_empty
+            counters[r, Counter.PRIM_TESTS] = n_prim
+            counters[r, Counter.MAILBOX_HITS] = n_mailbox
+            counters[r, Counter.BYTES] = n_cells * _CELL_BYTES + n_prim * _PRIM_BYTES
+        store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
+    return 0
+
+
+make_scratch = cpu_inline(make_scratch_py)
+trace_rays = cpu_inline(trace_rays_py)
+trace_kernel = body_kernels(make_scratch, trace_rays)
+
+
+def irregular_layout(
+    grid: IrregularGrid, mesh: TriangleMesh, cache: dict[str, Any] | None, mailbox: int
+) -> IrregularTrace:
+    """Return the traversal layout of ``grid`` (memoised in ``cache``) with its mailbox size."""
+    layout = memoised_layout(
+        cache, "grid.irregular.trace", lambda: trace_layout(grid, mesh.hit_rows(), 0)
+    )
+    return layout._replace(mailbox=np.array([mailbox], dtype=np.int32))
+
+
+def trace_irregular(
+    grid: IrregularGrid,
+    mesh: TriangleMesh,
+    rays: RayBatch,
+    query: str,
+    stats: bool,
+    mailbox: int,
+    cache: dict[str, Any] | None,
+) -> HitBatch:
+    """Trace rays through an irregular grid (the body of ``grid.dda`` and ``grid.skip``)."""
+    layout = irregular_layout(grid, mesh, cache, mailbox)
+    return run_trace(trace_kernel, layout, rays, query, stats)
