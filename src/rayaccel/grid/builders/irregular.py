@@ -129,7 +129,7 @@ def is_subset(pool, a_first, a_count, b_first, b_count):
 
 
 @cpu_kernel()
-def merge_pass(axis, box, first, count, pool, leaf_cell, top_res, shift, depth, leaf_first,
+def merge_pass(axis, box, first, count, pool, leaf_cell, top_res, shift, log_dim, leaf_first,
                fine_res, voxel):  # fmt: skip
     """Merge cells in pairs along ``axis``; return the new cells, lists and leaf map.
 
@@ -155,7 +155,7 @@ def merge_pass(axis, box, first, count, pool, leaf_cell, top_res, shift, depth, 
         p[1] = box[a, 1]
         p[2] = box[a, 2]
         p[axis] = box[a, 3 + axis]
-        b = voxel_cell(p[0], p[1], p[2], top_res, shift, depth, leaf_first, leaf_cell)
+        b = voxel_cell(p[0], p[1], p[2], top_res, shift, log_dim, leaf_first, leaf_cell)
         if partner[b] >= 0 or absorbed[b]:
             continue
         if (box[b, u] != box[a, u] or box[b, 3 + u] != box[a, 3 + u]
@@ -240,7 +240,7 @@ def merge_pass(axis, box, first, count, pool, leaf_cell, top_res, shift, depth, 
 
 
 @cpu_kernel(parallel=True)
-def expand_cells(box, first, count, pool, leaf_cell, top_res, shift, depth, leaf_first,
+def expand_cells(box, first, count, pool, leaf_cell, top_res, shift, log_dim, leaf_first,
                  fine_res, passes):  # fmt: skip
     """Return ``(n_cells, 6)`` int32 exit boxes and the number of faces moved.
 
@@ -281,7 +281,7 @@ def expand_cells(box, first, count, pool, leaf_cell, top_res, shift, depth, leaf
                     while pu < e[3 + u]:
                         p[u] = pu
                         p[v] = pv
-                        nb = voxel_cell(p[0], p[1], p[2], top_res, shift, depth, leaf_first,
+                        nb = voxel_cell(p[0], p[1], p[2], top_res, shift, log_dim, leaf_first,
                                         leaf_cell)  # fmt: skip
                         if not is_subset(pool, first[nb], count[nb], first[c], count[c]):
                             ok = False
@@ -325,12 +325,12 @@ def build_irregular_grid(
     opts = options or IrregularOptions()
     top, tri, phases, wanted_res = top_level(mesh, opts, "grid.irregular")
     wanted = wanted_res.max(axis=1)
-    depth = np.minimum(np.ceil(np.log2(wanted)).astype(np.int64), opts.max_depth)
-    sub_res = np.repeat((np.int64(1) << depth)[:, None], 3, axis=1).astype(INDEX)
+    log_dim = np.minimum(np.ceil(np.log2(wanted)).astype(np.int64), opts.max_depth)
+    sub_res = np.repeat((np.int64(1) << log_dim)[:, None], 3, axis=1).astype(INDEX)
     asked = f"grid.irregular: leaf density λ2={opts.leaf_density}"
     leaves = leaf_level(top, tri, sub_res, opts, asked, phases)
-    depth = np.round(np.log2(leaves.sub_res[:, 0])).astype(INDEX)
-    shift = int(depth.max())
+    log_dim = np.round(np.log2(leaves.sub_res[:, 0])).astype(INDEX)
+    shift = int(log_dim.max())
     fine_res = (top.res.astype(np.int64) << shift).astype(INDEX)
     if (fine_res > MAX_FINE_RES).any():
         raise InvalidInputError(
@@ -339,7 +339,7 @@ def build_irregular_grid(
         )
     t0 = time.perf_counter()
     shell = IrregularGrid(
-        top.lo, top.hi, top.res, shift, depth, leaves.leaf_first,
+        top.lo, top.hi, top.res, shift, log_dim, leaves.leaf_first,
         np.arange(leaves.leaf_first[-1], dtype=INDEX), np.empty((0, 6), INDEX),
         np.empty((0, 6), INDEX), leaves.leaf_start, leaves.prim_index, top.n_prims,
     )  # fmt: skip
@@ -349,7 +349,7 @@ def build_irregular_grid(
     pool = leaves.prim_index
     leaf_cell = shell.cell_of_leaf
     voxel = ((top.hi.astype(np.float64) - top.lo) / fine_res).astype(REAL)
-    map_args = (top.res, shift, depth, leaves.leaf_first)
+    map_args = (top.res, shift, log_dim, leaves.leaf_first)
     rounds = [int(box.shape[0])]
     while opts.merge_threshold > 0.0 and box.shape[0] > 1:
         for axis in range(3):
@@ -371,7 +371,7 @@ def build_irregular_grid(
         hi=top.hi,
         top_res=top.res,
         shift=shift,
-        depth=depth,
+        log_dim=log_dim,
         leaf_first=leaves.leaf_first,
         cell_of_leaf=np.ascontiguousarray(leaf_cell, dtype=INDEX),
         cell_box=box,

@@ -9,7 +9,7 @@ Canonical layout (:class:`IrregularGrid`)
     two-level leaves merged into it).
 
     The *voxel map* finds the cell of a voxel in two steps: the top cell ``t`` holding
-    it (``voxel >> shift``), whose sub-grid has ``2^depth[t]`` leaves per axis starting
+    it (``voxel >> shift``), whose sub-grid has ``2^log_dim[t]`` leaves per axis starting
     at ``leaf_first[t]``, then ``cell_of_leaf`` of the leaf holding it.
 
     ``cell_exit[c]`` is the cell's box with each face pushed out over neighbours whose
@@ -42,10 +42,10 @@ from rayaccel.grid.layouts.uniform import gather_rows, validate_box
 MAX_FINE_RES = 2**20
 
 
-def voxel_cell_py(x, y, z, top_res, shift, depth, leaf_first, cell_of_leaf):
+def voxel_cell_py(x, y, z, top_res, shift, log_dim, leaf_first, cell_of_leaf):
     """Return the cell holding voxel ``(x, y, z)`` by the voxel map (two lookups)."""
     t = (x >> shift) + top_res[0] * ((y >> shift) + top_res[1] * (z >> shift))
-    d = depth[t]
+    d = log_dim[t]
     s = shift - d
     mask = (1 << shift) - 1
     side = 1 << d
@@ -66,7 +66,7 @@ class IrregularTrace(NamedTuple):
     fine_res: IntArray
     top_res: IntArray
     shift: IntArray
-    depth: IntArray
+    log_dim: IntArray
     leaf_first: IntArray
     cell_of_leaf: IntArray
     exit_lo: IntArray
@@ -89,7 +89,7 @@ class IrregularGrid:
         Top cells per axis.
     shift : int
         ``log2`` of the voxels per top cell along each axis.
-    depth : (n_top,) int32
+    log_dim : (n_top,) int32
         ``log2`` of the leaves per axis of each top cell's sub-grid (``<= shift``).
     leaf_first : (n_top + 1,) int32
         First leaf of each top cell.
@@ -112,7 +112,7 @@ class IrregularGrid:
     hi: FloatArray
     top_res: IntArray
     shift: int
-    depth: IntArray
+    log_dim: IntArray
     leaf_first: IntArray
     cell_of_leaf: IntArray
     cell_box: IntArray
@@ -140,7 +140,7 @@ class IrregularGrid:
 
     def nbytes(self) -> int:
         """Return the canonical size in bytes (voxel map, boxes, ranges, references)."""
-        arrays = (self.depth, self.leaf_first, self.cell_of_leaf, self.cell_box,
+        arrays = (self.log_dim, self.leaf_first, self.cell_of_leaf, self.cell_box,
                   self.cell_exit, self.cell_start, self.prim_index)  # fmt: skip
         return int(sum(a.nbytes for a in arrays))
 
@@ -164,12 +164,12 @@ class IrregularGrid:
 
     def cell_coords(self) -> np.ndarray:
         """Return the ``(n_leaves, 6)`` int64 voxel bounds of every leaf."""
-        n_top = self.depth.shape[0]
+        n_top = self.log_dim.shape[0]
         rx, ry = int(self.top_res[0]), int(self.top_res[1])
         counts = np.asarray(np.diff(self.leaf_first), dtype=np.int64)
         top = np.repeat(np.arange(n_top, dtype=np.int64), counts)
         local = np.arange(self.cell_of_leaf.shape[0], dtype=np.int64) - self.leaf_first[top]
-        d = self.depth[top].astype(np.int64)
+        d = self.log_dim[top].astype(np.int64)
         side = np.int64(1) << d
         width = np.int64(1) << (self.shift - d)
         txyz = np.stack([top % rx, (top // rx) % ry, top // (rx * ry)], axis=1)
@@ -190,15 +190,15 @@ class IrregularGrid:
         """
         validate_box(self.lo, self.hi)
         n_top = int(np.prod(self.top_res.astype(np.int64)))
-        if self.depth.shape != (n_top,) or self.leaf_first.shape != (n_top + 1,):
-            raise StructureInvariantError("grid: depth and leaf_first must cover the top cells")
-        if (self.depth < 0).any() or (self.depth > self.shift).any():
-            raise StructureInvariantError("grid: a top cell's depth is outside 0..shift")
+        if self.log_dim.shape != (n_top,) or self.leaf_first.shape != (n_top + 1,):
+            raise StructureInvariantError("grid: log_dim and leaf_first must cover the top cells")
+        if (self.log_dim < 0).any() or (self.log_dim > self.shift).any():
+            raise StructureInvariantError("grid: a top cell's log_dim is outside 0..shift")
         if (self.fine_res > MAX_FINE_RES).any():
             raise StructureInvariantError(f"grid: fine resolution above {MAX_FINE_RES}")
-        expect = np.concatenate([[0], np.cumsum(8 ** self.depth.astype(np.int64))])
+        expect = np.concatenate([[0], np.cumsum(8 ** self.log_dim.astype(np.int64))])
         if not np.array_equal(self.leaf_first, expect):
-            raise StructureInvariantError("grid: leaf_first is not the prefix sum of 8^depth")
+            raise StructureInvariantError("grid: leaf_first is not the prefix sum of 8^log_dim")
         n = self.n_cells
         for name in ("cell_box", "cell_exit"):
             a = getattr(self, name)
@@ -301,7 +301,7 @@ def trace_layout(grid: IrregularGrid, hit_rows: FloatArray, mailbox: int) -> Irr
         fine_res=fine,
         top_res=grid.top_res.copy(),
         shift=np.array([grid.shift], INDEX),
-        depth=grid.depth,
+        log_dim=grid.log_dim,
         leaf_first=grid.leaf_first,
         cell_of_leaf=grid.cell_of_leaf,
         exit_lo=np.ascontiguousarray(grid.cell_exit[:, :3]),

@@ -87,7 +87,7 @@ def trace_rays_py(
                 step_z = 1 if dz > 0 else (-1 if dz < 0 else 0)
                 while True:
                     cell = voxel_cell(
-                        cx, cy, cz, grid.top_res, shift, grid.depth, grid.leaf_first,
+                        cx, cy, cz, grid.top_res, shift, grid.log_dim, grid.leaf_first,
                         grid.cell_of_leaf,
                     )  # fmt: skip
                     first = grid.cell_start[cell]
