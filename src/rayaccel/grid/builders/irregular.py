@@ -11,7 +11,8 @@ parameters of the authors' released implementation (hagrid), ALGORITHMS §7.5:
    voxels. The leaves are binned with the two-level grid's one sort
    (:func:`~rayaccel.grid.builders.two_level.leaf_level`); hagrid subdivides level by
    level like an octree, which ends in the same leaves.
-3. Merge rounds (:func:`merge_pass` along x, then y, then z): a cell and its
+3. Merge rounds (:func:`merge_candidates`, :func:`merge_pass` along x, then y,
+   then z): a cell and its
    neighbour on the axis with the same extent on the other two merge when
    ``SA(A∪B)·(N(A∪B) + 1) <= SA(A)·(N_A + 1) + SA(B)·(N_B + 1)`` (unit traversal
    cost; ``N(A∪B)`` the size of the union of their lists, first bounded below by
@@ -42,7 +43,7 @@ from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
 from rayaccel.grid.builders.two_level import leaf_level, top_level
 from rayaccel.grid.builders.uniform import UniformGridOptions
-from rayaccel.grid.layouts.irregular import MAX_FINE_RES, IrregularGrid, voxel_cell
+from rayaccel.grid.layouts.irregular import MAX_FINE_RES, IrregularGrid, leaf_boxes, voxel_cell
 from rayaccel.scene.mesh import TriangleMesh
 
 
@@ -128,36 +129,30 @@ def is_subset(pool, a_first, a_count, b_first, b_count):
     return True
 
 
-@cpu_kernel()
-def merge_pass(axis, box, first, count, pool, leaf_cell, top_res, shift, log_dim, leaf_first,
-               fine_res, voxel):  # fmt: skip
-    """Merge cells in pairs along ``axis``; return the new cells, lists and leaf map.
+@cpu_kernel(parallel=True)
+def merge_candidates(axis, box, first, count, pool, leaf_cell, top_res, shift, log_dim,
+                     leaf_first, fine_res, voxel):  # fmt: skip
+    """Return each cell's neighbour to merge with along ``axis`` (-1: none) and the union size.
 
-    Returns ``(box, first, count, pool, leaf_cell)`` of the merged cells: a cell
-    absorbs its neighbour beyond its upper face on ``axis`` when the neighbour has the
-    same extent on the other two axes and the surface-area cost does not rise (see
-    the module docstring); each cell takes part in at most one merge.
+    The neighbour is the cell beyond the upper face on ``axis``; it qualifies when it has
+    the same extent on the other two axes and the surface-area cost does not rise (see
+    the module docstring). Cells are independent here; :func:`merge_pass` pairs them.
     """
     n = box.shape[0]
     u = (axis + 1) % 3
     v = (axis + 2) % 3
-    partner = np.full(n, -1, dtype=np.int64)
-    absorbed = np.zeros(n, dtype=np.uint8)
-    merged_count = count.copy()
+    want = np.full(n, -1, dtype=np.int64)
+    size = count.copy()
     vx = np.float64(voxel[0])
     vy = np.float64(voxel[1])
     vz = np.float64(voxel[2])
-    p = np.empty(3, dtype=np.int64)
-    for a in range(n):
-        if partner[a] >= 0 or absorbed[a] or box[a, 3 + axis] >= fine_res[axis]:
+    for a in prange(n):
+        if box[a, 3 + axis] >= fine_res[axis]:
             continue
-        p[0] = box[a, 0]
-        p[1] = box[a, 1]
-        p[2] = box[a, 2]
-        p[axis] = box[a, 3 + axis]
-        b = voxel_cell(p[0], p[1], p[2], top_res, shift, log_dim, leaf_first, leaf_cell)
-        if partner[b] >= 0 or absorbed[b]:
-            continue
+        px = box[a, 3] if axis == 0 else box[a, 0]
+        py = box[a, 4] if axis == 1 else box[a, 1]
+        pz = box[a, 5] if axis == 2 else box[a, 2]
+        b = voxel_cell(px, py, pz, top_res, shift, log_dim, leaf_first, leaf_cell)
         if (box[b, u] != box[a, u] or box[b, 3 + u] != box[a, 3 + u]
                 or box[b, v] != box[a, v] or box[b, 3 + v] != box[a, 3 + v]):  # fmt: skip
             continue
@@ -179,20 +174,32 @@ def merge_pass(axis, box, first, count, pool, leaf_cell, top_res, shift, log_dim
         n_union = union_size(pool, first[a], count[a], first[b], count[b])
         if sa_m * (n_union + 1) > separate:
             continue
-        partner[a] = b
-        absorbed[b] = 1
-        merged_count[a] = n_union
-    # New ids, boxes and lists.
+        want[a] = b
+        size[a] = n_union
+    return want, size
+
+
+@cpu_kernel(parallel=True)
+def merge_pass(axis, want, size, box, first, count, pool, leaf_cell):
+    """Merge the cells of :func:`merge_candidates` in pairs; return the new cells and lists.
+
+    Returns ``(box, first, count, pool, leaf_cell)``. Pairs are taken in cell order, a
+    cell taking part in at most one merge (pairs, never chains, as in hagrid).
+    """
+    n = box.shape[0]
+    partner = np.full(n, -1, dtype=np.int64)
+    absorbed = np.zeros(n, dtype=np.uint8)
+    for a in range(n):
+        b = want[a]
+        if b >= 0 and partner[a] < 0 and not absorbed[a] and partner[b] < 0 and not absorbed[b]:
+            partner[a] = b
+            absorbed[b] = 1
     new_id = np.full(n, -1, dtype=np.int64)
     n_new = 0
     for a in range(n):
         if not absorbed[a]:
             new_id[a] = n_new
             n_new += 1
-    for a in range(n):
-        if partner[a] >= 0:
-            new_id[partner[a]] = new_id[a]
-    new_box = np.empty((n_new, 6), dtype=np.int32)
     new_first = np.empty(n_new, dtype=np.int64)
     new_count = np.empty(n_new, dtype=np.int64)
     total = 0
@@ -201,22 +208,26 @@ def merge_pass(axis, box, first, count, pool, leaf_cell, top_res, shift, log_dim
             continue
         c = new_id[a]
         new_first[c] = total
-        new_count[c] = merged_count[a]
-        total += merged_count[a]
-        for k in range(6):
-            new_box[c, k] = box[a, k]
-        if partner[a] >= 0:
-            new_box[c, 3 + axis] = box[partner[a], 3 + axis]
-    new_pool = np.empty(total, dtype=np.int32)
+        new_count[c] = size[a] if partner[a] >= 0 else count[a]
+        total += new_count[c]
     for a in range(n):
+        if partner[a] >= 0:
+            new_id[partner[a]] = new_id[a]
+    new_box = np.empty((n_new, 6), dtype=np.int32)
+    new_pool = np.empty(total, dtype=np.int32)
+    for a in prange(n):
         if absorbed[a]:
             continue
-        out = new_first[new_id[a]]
+        c = new_id[a]
+        for k in range(6):
+            new_box[c, k] = box[a, k]
+        out = new_first[c]
         if partner[a] < 0:
             for k in range(count[a]):
                 new_pool[out + k] = pool[first[a] + k]
             continue
         b = partner[a]
+        new_box[c, 3 + axis] = box[b, 3 + axis]
         i = first[a]
         j = first[b]
         a_end = first[a] + count[a]
@@ -234,7 +245,7 @@ def merge_pass(axis, box, first, count, pool, leaf_cell, top_res, shift, log_dim
                 j += 1
             out += 1
     new_leaf_cell = np.empty_like(leaf_cell)
-    for i in range(leaf_cell.shape[0]):
+    for i in prange(leaf_cell.shape[0]):
         new_leaf_cell[i] = new_id[leaf_cell[i]]
     return new_box, new_first, new_count, new_pool, new_leaf_cell
 
@@ -338,23 +349,21 @@ def build_irregular_grid(
             f"{MAX_FINE_RES}; lower max_depth or the densities"
         )
     t0 = time.perf_counter()
-    shell = IrregularGrid(
-        top.lo, top.hi, top.res, shift, log_dim, leaves.leaf_first,
-        np.arange(leaves.leaf_first[-1], dtype=INDEX), np.empty((0, 6), INDEX),
-        np.empty((0, 6), INDEX), leaves.leaf_start, leaves.prim_index, top.n_prims,
-    )  # fmt: skip
-    box = shell.cell_coords().astype(INDEX)
+    box = leaf_boxes(top.res, shift, log_dim, leaves.leaf_first)
     first = leaves.leaf_start[:-1].astype(np.int64)
     count = np.diff(leaves.leaf_start).astype(np.int64)
     pool = leaves.prim_index
-    leaf_cell = shell.cell_of_leaf
+    leaf_cell = np.arange(leaves.leaf_first[-1], dtype=INDEX)
     voxel = ((top.hi.astype(np.float64) - top.lo) / fine_res).astype(REAL)
     map_args = (top.res, shift, log_dim, leaves.leaf_first)
     rounds = [int(box.shape[0])]
     while opts.merge_threshold > 0.0 and box.shape[0] > 1:
         for axis in range(3):
-            box, first, count, pool, leaf_cell = merge_pass(
+            want, size = merge_candidates(
                 axis, box, first, count, pool, leaf_cell, *map_args, fine_res, voxel
+            )
+            box, first, count, pool, leaf_cell = merge_pass(
+                axis, want, size, box, first, count, pool, leaf_cell
             )
         rounds.append(int(box.shape[0]))
         if rounds[-1] >= opts.merge_threshold * rounds[-2]:

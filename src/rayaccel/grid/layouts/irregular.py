@@ -31,8 +31,9 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
+from numba import prange
 
-from rayaccel._jit import cpu_inline
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import StructureInvariantError
 from rayaccel.grid.layouts.uniform import gather_rows, validate_box
@@ -54,6 +55,30 @@ def voxel_cell_py(x, y, z, top_res, shift, log_dim, leaf_first, cell_of_leaf):
 
 
 voxel_cell = cpu_inline(voxel_cell_py)
+
+
+@cpu_kernel(parallel=True)
+def leaf_boxes(top_res, shift, log_dim, leaf_first):
+    """Return the ``(n_leaves, 6)`` int32 voxel bounds of the leaves of every top cell."""
+    out = np.empty((leaf_first[-1], 6), dtype=np.int32)
+    rx = top_res[0]
+    ry = top_res[1]
+    for t in prange(log_dim.shape[0]):
+        d = log_dim[t]
+        side = 1 << d
+        width = 1 << (shift - d)
+        tx = (t % rx) << shift
+        ty = ((t // rx) % ry) << shift
+        tz = (t // (rx * ry)) << shift
+        for k in range(leaf_first[t + 1] - leaf_first[t]):
+            leaf = leaf_first[t] + k
+            out[leaf, 0] = tx + (k % side) * width
+            out[leaf, 1] = ty + ((k // side) % side) * width
+            out[leaf, 2] = tz + (k // (side * side)) * width
+            out[leaf, 3] = out[leaf, 0] + width
+            out[leaf, 4] = out[leaf, 1] + width
+            out[leaf, 5] = out[leaf, 2] + width
+    return out
 
 
 class IrregularTrace(NamedTuple):
@@ -162,20 +187,10 @@ class IrregularGrid:
             "build_phase_ms": {k: round(v, 3) for k, v in self.phase_ms.items()},
         }
 
-    def cell_coords(self) -> np.ndarray:
-        """Return the ``(n_leaves, 6)`` int64 voxel bounds of every leaf."""
-        n_top = self.log_dim.shape[0]
-        rx, ry = int(self.top_res[0]), int(self.top_res[1])
-        counts = np.asarray(np.diff(self.leaf_first), dtype=np.int64)
-        top = np.repeat(np.arange(n_top, dtype=np.int64), counts)
-        local = np.arange(self.cell_of_leaf.shape[0], dtype=np.int64) - self.leaf_first[top]
-        d = self.log_dim[top].astype(np.int64)
-        side = np.int64(1) << d
-        width = np.int64(1) << (self.shift - d)
-        txyz = np.stack([top % rx, (top // rx) % ry, top // (rx * ry)], axis=1)
-        lxyz = np.stack([local % side, (local // side) % side, local // (side * side)], axis=1)
-        lo = (txyz << self.shift) + lxyz * width[:, None]
-        return np.concatenate([lo, lo + width[:, None]], axis=1)
+    def leaf_boxes(self) -> np.ndarray:
+        """Return the ``(n_leaves, 6)`` int32 voxel bounds of every leaf."""
+        boxes: np.ndarray = leaf_boxes(self.top_res, self.shift, self.log_dim, self.leaf_first)
+        return boxes
 
     def validate(self, triangles: FloatArray | None = None) -> None:
         """Check every invariant; raise :class:`StructureInvariantError` naming the first broken.
@@ -208,7 +223,7 @@ class IrregularGrid:
         if ids.shape != (int(expect[-1]),) or (ids < 0).any() or (ids >= n).any():
             raise StructureInvariantError("grid: cell_of_leaf entry out of range")
         box = self.cell_box.astype(np.int64)
-        leaf = self.cell_coords()
+        leaf = self.leaf_boxes().astype(np.int64)
         mine = box[ids]
         if ((leaf[:, :3] < mine[:, :3]) | (leaf[:, 3:] > mine[:, 3:])).any():
             raise StructureInvariantError("grid: a leaf lies outside its cell's box")
