@@ -10,7 +10,7 @@ half-written line. Records already in the file when the writer opens it are kept
 
 :func:`markdown_table` and :func:`rich_table` show one row per scene × system ×
 ray set: build time, Mrays/s (median and best of the timed passes), the ratio to
-Open3D's Embree on the same rays, mean nodes and primitives per ray, and the
+Open3D's Embree on the same rays, mean nodes (cells for grids) and primitives per ray, and the
 stats overhead.
 """
 
@@ -43,7 +43,7 @@ COLUMNS: tuple[str, ...] = (
     "Mrays/s",
     "best",
     "× open3d",
-    "nodes/ray",
+    "nodes/ray (grids: cells)",
     "prims/ray",
     "stats +%",
 )
@@ -182,7 +182,7 @@ def table_rows(records: Iterable[Record]) -> list[list[str]]:
             speed,
             best,
             ratio,
-            _fmt(r.get("nodes_per_ray")),
+            _fmt(r.get("nodes_per_ray") or (r.get("counters_mean") or {}).get("cells")),
             _fmt(r.get("prims_per_ray")),
             "–" if overhead is None else f"{100.0 * overhead:+.1f}",
         ])  # fmt: skip

@@ -27,7 +27,8 @@ import numpy as np
 from rayaccel._jit import cpu_inline
 from rayaccel.counters import Counter
 from rayaccel.grid.layouts.irregular import IrregularGrid, IrregularTrace, trace_layout, voxel_cell
-from rayaccel.grid.traverse.walk import INF32, intersect_cell, leave_box, start_cell
+from rayaccel.grid.traverse.walk import INF32, leave_box, start_cell
+from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
@@ -92,17 +93,38 @@ def trace_rays_py(
                     )  # fmt: skip
                     first = grid.cell_start[cell]
                     last = grid.cell_start[cell + 1]
-                    t_hit, best_prim, best_u, best_v, slot, tested, saved = intersect_cell(
-                        grid.tri, grid.tri_prim, first, last, mailbox, n_mail, slot,
-                        okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
-                        best_prim, best_u, best_v, query == QUERY_ANY,
-                    )  # fmt: skip
                     if with_stats:
                         n_cells += 1
                         if first == last:
                             n_empty += 1
-                        n_prim += tested
-                        n_mailbox += saved
+                    for i in range(first, last):
+                        p = grid.tri_prim[i]
+                        seen = False
+                        for m in range(n_mail):
+                            if mailbox[m] == p:
+                                seen = True
+                                break
+                        if seen:
+                            if with_stats:
+                                n_mailbox += 1
+                            continue
+                        if n_mail > 0:
+                            mailbox[slot] = p
+                            slot += 1
+                            if slot == n_mail:
+                                slot = 0
+                        t, u, v = ray_triangle(
+                            grid.tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit
+                        )
+                        if with_stats:
+                            n_prim += 1
+                        if t < t_hit:
+                            t_hit = t
+                            best_prim = p
+                            best_u = u
+                            best_v = v
+                            if query == QUERY_ANY:
+                                break
                     if query == QUERY_ANY and best_prim >= 0:
                         break
                     e_lo = grid.exit_lo

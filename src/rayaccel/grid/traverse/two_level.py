@@ -25,7 +25,8 @@ from rayaccel._jit import cpu_inline
 from rayaccel.counters import Counter
 from rayaccel.grid.layouts.two_level import TwoLevelGrid, TwoLevelTrace, two_level_trace_layout
 from rayaccel.grid.layouts.uniform import SKIP_DISTANCE
-from rayaccel.grid.traverse.walk import exit_plane, intersect_cell, leave_box, start_cell
+from rayaccel.grid.traverse.walk import exit_plane, leave_box, start_cell
+from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.queries import QUERY_ANY
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
@@ -167,17 +168,35 @@ def trace_body(skip: bool) -> Any:
                                     n_bytes += _CELL_BYTES
                                     if first == last:
                                         n_empty += 1
-                                (
-                                    t_hit, best_prim, best_u, best_v, slot, tested, saved,
-                                ) = intersect_cell(
-                                    tri, tri_prim, first, last, mailbox, n_mail, slot, okx, oky,
-                                    okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u,
-                                    best_v, query == QUERY_ANY,
-                                )  # fmt: skip
-                                if with_stats:
-                                    n_prim += tested
-                                    n_mailbox += saved
-                                    n_bytes += _PRIM_BYTES * tested
+                                for i in range(first, last):
+                                    p = tri_prim[i]
+                                    seen = False
+                                    for m in range(n_mail):
+                                        if mailbox[m] == p:
+                                            seen = True
+                                            break
+                                    if seen:
+                                        if with_stats:
+                                            n_mailbox += 1
+                                        continue
+                                    if n_mail > 0:
+                                        mailbox[slot] = p
+                                        slot += 1
+                                        if slot == n_mail:
+                                            slot = 0
+                                    t, u, v = ray_triangle(
+                                        tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit
+                                    )
+                                    if with_stats:
+                                        n_prim += 1
+                                        n_bytes += _PRIM_BYTES
+                                    if t < t_hit:
+                                        t_hit = t
+                                        best_prim = p
+                                        best_u = u
+                                        best_v = v
+                                        if query == QUERY_ANY:
+                                            break
                                 if query == QUERY_ANY and best_prim >= 0:
                                     done = True
                                     break

@@ -1,4 +1,4 @@
-"""The steps grid walks share: the start cell, exit planes, leaving a box, a cell's tests.
+"""The steps grid walks share: the start cell, a cell's exit plane, leaving a box of cells.
 
 Inline helpers (``rayaccel._jit.cpu_inline``) of the uniform, two-level and irregular
 grid traversals. A walk over a lattice of equal cells (the uniform grid, a top grid,
@@ -17,7 +17,6 @@ import math
 import numpy as np
 
 from rayaccel._jit import cpu_inline
-from rayaccel.kernels.triangle import ray_triangle
 
 INF32 = np.float32(np.inf)
 #: The start cell is biased this fraction of a cell against the direction.
@@ -119,45 +118,3 @@ def leave_box_py(
 
 leave_box = cpu_inline(leave_box_py)
 
-
-def intersect_cell_py(
-    tri, tri_prim, first, last, mailbox, n_mail, slot, okx, oky, okz, kx, ky, kz,
-    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, any_hit,
-):  # fmt: skip
-    """Test a cell's triangles ``first:last`` in order, skipping those in the mailbox.
-
-    The mailbox is a ring of the ``n_mail`` ids tested last (``slot``: the next to
-    overwrite); a triangle in several cells is tested once while it stays in the ring.
-    Returns ``(t_hit, best_prim, best_u, best_v, slot, n_tested, n_mailbox_hits)``;
-    with ``any_hit`` it stops at the first hit.
-    """
-    n_tested = 0
-    n_saved = 0
-    for i in range(first, last):
-        p = tri_prim[i]
-        seen = False
-        for m in range(n_mail):
-            if mailbox[m] == p:
-                seen = True
-                break
-        if seen:
-            n_saved += 1
-            continue
-        if n_mail > 0:
-            mailbox[slot] = p
-            slot += 1
-            if slot == n_mail:
-                slot = 0
-        t, u, v = ray_triangle(tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit)
-        n_tested += 1
-        if t < t_hit:
-            t_hit = t
-            best_prim = p
-            best_u = u
-            best_v = v
-            if any_hit:
-                break
-    return t_hit, best_prim, best_u, best_v, slot, n_tested, n_saved
-
-
-intersect_cell = cpu_inline(intersect_cell_py)
