@@ -236,9 +236,12 @@ class IrregularGrid:
         if not np.array_equal(volume, leaf_volume.astype(np.int64)):
             raise StructureInvariantError("grid: a cell's leaves do not fill its box")
         ext = self.cell_exit.astype(np.int64)
-        if (ext[:, :3] > box[:, :3]).any() or (ext[:, 3:] < box[:, 3:]).any() or (
-            ext[:, :3] < 0
-        ).any() or (ext[:, 3:] > fine).any():
+        if (
+            (ext[:, :3] > box[:, :3]).any()
+            or (ext[:, 3:] < box[:, 3:]).any()
+            or (ext[:, :3] < 0).any()
+            or (ext[:, 3:] > fine).any()
+        ):
             raise StructureInvariantError("grid: an expanded box does not hold its cell")
         self._validate_lists()
         if triangles is not None:

@@ -93,14 +93,12 @@ def make_scratch_py(grid):
     return np.empty(max(grid.mailbox[0], 1), dtype=np.int32)
 
 
-
-
 @functools.cache
 def trace_body(skip: bool) -> Any:
     """Return the per-ray body (``cpu_inline``) of the DDA, jumping over empty boxes if ``skip``.
 
     With ``skip`` the kind of skip data is read from the layout at run time (one compiled
-    variant serves the distance field and the macro regions).
+    variant serves the distance field, the macro regions and the mip-map).
     """
 
     def trace_rays_py(

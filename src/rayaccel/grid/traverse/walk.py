@@ -117,4 +117,3 @@ def leave_box_py(
 
 
 leave_box = cpu_inline(leave_box_py)
-
