@@ -36,7 +36,12 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import StructureInvariantError
-from rayaccel.grid.layouts.uniform import gather_rows, validate_box
+from rayaccel.grid.layouts.uniform import (
+    gather_rows,
+    interleaved_box,
+    validate_box,
+    validate_lists,
+)
 
 #: Largest virtual fine grid resolution along one axis (voxel coordinates stay exact
 #: in float32 arithmetic well below 2**24).
@@ -154,6 +159,12 @@ class IrregularGrid:
         return (self.top_res.astype(np.int64) << self.shift).astype(INDEX)
 
     @property
+    def voxel_size(self) -> np.ndarray:
+        """The ``(3,)`` float64 size of a voxel of the fine grid."""
+        size: np.ndarray = (self.hi.astype(np.float64) - self.lo) / self.fine_res
+        return size
+
+    @property
     def n_cells(self) -> int:
         """Number of cells (after merging)."""
         return int(self.cell_start.shape[0] - 1)
@@ -243,36 +254,18 @@ class IrregularGrid:
             or (ext[:, 3:] > fine).any()
         ):
             raise StructureInvariantError("grid: an expanded box does not hold its cell")
-        self._validate_lists()
+        _, cell_of_ref = validate_lists(self.cell_start, self.prim_index, n, self.n_prims)
         if triangles is not None:
-            self._validate_geometry(triangles, leaf)
+            self._validate_geometry(triangles, leaf, cell_of_ref)
 
-    def _validate_lists(self) -> None:
-        starts = self.cell_start
-        if starts.dtype != INDEX or starts[0] != 0 or starts[-1] != self.n_refs:
-            raise StructureInvariantError("grid: cell_start must rise from 0 to n_refs")
-        counts = np.diff(starts)
-        if (counts < 0).any():
-            raise StructureInvariantError("grid: cell_start must rise from 0 to n_refs")
-        p = self.prim_index
-        if p.dtype != INDEX or (self.n_refs and (p.min() < 0 or p.max() >= self.n_prims)):
-            raise StructureInvariantError("grid: prim_index entry out of range [0, n_prims)")
-        cell_of_ref = np.repeat(np.arange(self.n_cells, dtype=np.int64), counts)
-        if self.n_refs > 1 and ((cell_of_ref[1:] == cell_of_ref[:-1]) & (p[1:] <= p[:-1])).any():
-            raise StructureInvariantError("grid: ids not increasing within a cell")
-        listed = np.zeros(self.n_prims, dtype=bool)
-        listed[p] = True
-        if not listed.all():
-            raise StructureInvariantError(f"grid: primitive {int(np.argmin(listed))} in no cell")
-
-    def _validate_geometry(self, triangles: FloatArray, leaf: np.ndarray) -> None:
+    def _validate_geometry(
+        self, triangles: FloatArray, leaf: np.ndarray, cell_of_ref: np.ndarray
+    ) -> None:
         t_lo = triangles.min(axis=1).astype(np.float64)
         t_hi = triangles.max(axis=1).astype(np.float64)
         if (t_lo < self.lo).any() or (t_hi > self.hi).any():
             raise StructureInvariantError("grid: a triangle lies outside the grid box")
-        voxel = (self.hi.astype(np.float64) - self.lo) / self.fine_res
-        counts = np.diff(self.cell_start)
-        cell_of_ref = np.repeat(np.arange(self.n_cells, dtype=np.int64), counts)
+        voxel = self.voxel_size
         box = self.cell_box[cell_of_ref].astype(np.float64)
         # The leaves' overlap margin is a fraction 2^-10 of their size plus ulps.
         slack = (box[:, 3:] - box[:, :3]) * voxel * 2.0**-9 + (
@@ -307,16 +300,13 @@ class IrregularGrid:
 
 def trace_layout(grid: IrregularGrid, hit_rows: FloatArray, mailbox: int) -> IrregularTrace:
     """Return the arrays the irregular grid traversal reads (see the module docstring)."""
-    fine = grid.fine_res
-    voxel = ((grid.hi.astype(np.float64) - grid.lo) / fine).astype(REAL)
+    voxel = grid.voxel_size
     return IrregularTrace(
-        box=np.array(
-            [grid.lo[0], grid.hi[0], grid.lo[1], grid.hi[1], grid.lo[2], grid.hi[2]], REAL
-        ),
+        box=interleaved_box(grid.lo, grid.hi),
         lo=grid.lo.copy(),
-        voxel=voxel,
-        inv_voxel=(fine / (grid.hi.astype(np.float64) - grid.lo)).astype(REAL),
-        fine_res=fine,
+        voxel=voxel.astype(REAL),
+        inv_voxel=(grid.fine_res / (grid.hi.astype(np.float64) - grid.lo)).astype(REAL),
+        fine_res=grid.fine_res,
         top_res=grid.top_res.copy(),
         shift=np.array([grid.shift], INDEX),
         log_dim=grid.log_dim,

@@ -23,7 +23,12 @@ import numpy as np
 
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import StructureInvariantError
-from rayaccel.grid.layouts.uniform import UniformGrid, gather_rows
+from rayaccel.grid.layouts.uniform import (
+    UniformGrid,
+    gather_rows,
+    interleaved_box,
+    validate_lists,
+)
 
 
 class TwoLevelTrace(NamedTuple):
@@ -144,26 +149,9 @@ class TwoLevelGrid:
         expect = np.concatenate([[0], np.cumsum(sizes)])
         if self.leaf_first.dtype != INDEX or not np.array_equal(self.leaf_first, expect):
             raise StructureInvariantError("grid: leaf_first is not the prefix sum of sub-grids")
-        for name in ("leaf_start", "prim_index"):
-            a = getattr(self, name)
-            if a.dtype != INDEX or a.ndim != 1:
-                raise StructureInvariantError(f"grid: {name} must be int32 (n,)")
-        if self.leaf_start.shape[0] != expect[-1] + 1:
-            raise StructureInvariantError("grid: leaf_start must have n_leaves + 1 entries")
-        counts = np.diff(self.leaf_start)
-        if self.leaf_start[0] != 0 or self.leaf_start[-1] != self.n_refs or (counts < 0).any():
-            raise StructureInvariantError("grid: leaf_start must rise from 0 to n_refs")
-        if self.n_refs and (self.prim_index.min() < 0 or self.prim_index.max() >= self.n_prims):
-            raise StructureInvariantError("grid: prim_index entry out of range [0, n_prims)")
-        leaf_of_ref = np.repeat(np.arange(self.n_leaves, dtype=np.int64), counts)
-        if self.n_refs > 1:
-            same = leaf_of_ref[1:] == leaf_of_ref[:-1]
-            if (same & (self.prim_index[1:] <= self.prim_index[:-1])).any():
-                raise StructureInvariantError("grid: ids not increasing within a leaf")
-        listed = np.zeros(self.n_prims, dtype=bool)
-        listed[self.prim_index] = True
-        if not listed.all():
-            raise StructureInvariantError(f"grid: primitive {int(np.argmin(listed))} in no leaf")
+        _, leaf_of_ref = validate_lists(
+            self.leaf_start, self.prim_index, int(expect[-1]), self.n_prims, "leaf", "leaf_start"
+        )
         # Each leaf's ids are listed by its top cell.
         top_of_leaf = np.repeat(np.arange(n_top, dtype=np.int64), sizes)
         top_counts = np.diff(self.top.cell_start)
@@ -178,7 +166,7 @@ def two_level_trace_layout(grid: TwoLevelGrid, hit_rows: FloatArray) -> TwoLevel
     """Return the arrays the two-level DDA reads (triangle rows copied in leaf order)."""
     top = grid.top
     return TwoLevelTrace(
-        box=np.array([top.lo[0], top.hi[0], top.lo[1], top.hi[1], top.lo[2], top.hi[2]], REAL),
+        box=interleaved_box(top.lo, top.hi),
         lo=top.lo.copy(),
         size=((top.hi - top.lo) / top.res).astype(REAL),
         inv_size=(top.res / (top.hi - top.lo)).astype(REAL),

@@ -35,7 +35,7 @@ Traversal layout (:class:`GridTrace`, :func:`trace_layout`)
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 from numba import prange
@@ -111,6 +111,10 @@ class GridTrace(NamedTuple):
     skip: np.ndarray
     skip_kind: IntArray
     mailbox: IntArray
+
+
+#: A grid traversal layout: a NamedTuple with a ``mailbox`` field.
+Layout = TypeVar("Layout", bound=Any)
 
 
 class UniformGridArrays(NamedTuple):
@@ -217,26 +221,9 @@ class UniformGrid:
         if (self.res < 1).any() or (self.res > MAX_RES_AXIS).any():
             raise StructureInvariantError(f"grid: resolution {self.res} outside 1..{MAX_RES_AXIS}")
         n_cells = int(np.prod(self.res.astype(np.int64)))
-        for name in ("cell_start", "prim_index"):
-            a = getattr(self, name)
-            if a.dtype != INDEX or a.ndim != 1 or not a.flags.c_contiguous:
-                raise StructureInvariantError(f"grid: {name} must be C-contiguous int32 (n,)")
-        if self.cell_start.shape[0] != n_cells + 1:
-            raise StructureInvariantError("grid: cell_start must have n_cells + 1 entries")
-        counts = np.diff(self.cell_start)
-        if self.cell_start[0] != 0 or self.cell_start[-1] != self.n_refs or (counts < 0).any():
-            raise StructureInvariantError("grid: cell_start must rise from 0 to n_refs")
-        if self.n_refs and (self.prim_index.min() < 0 or self.prim_index.max() >= self.n_prims):
-            raise StructureInvariantError("grid: prim_index entry out of range [0, n_prims)")
-        cell_of_ref = np.repeat(np.arange(n_cells, dtype=np.int64), counts)
-        if self.n_refs > 1:
-            same = cell_of_ref[1:] == cell_of_ref[:-1]
-            if (same & (self.prim_index[1:] <= self.prim_index[:-1])).any():
-                raise StructureInvariantError("grid: ids not increasing within a cell")
-        listed = np.zeros(self.n_prims, dtype=bool)
-        listed[self.prim_index] = True
-        if not listed.all():
-            raise StructureInvariantError(f"grid: primitive {int(np.argmin(listed))} in no cell")
+        counts, cell_of_ref = validate_lists(
+            self.cell_start, self.prim_index, n_cells, self.n_prims
+        )
         self._validate_skip(counts)
         if triangles is not None:
             self._validate_geometry(triangles, cell_of_ref)
@@ -322,6 +309,47 @@ class UniformGrid:
             )
 
 
+def validate_lists(
+    starts: IntArray,
+    prim_index: IntArray,
+    n_units: int,
+    n_prims: int,
+    unit: str = "cell",
+    starts_name: str = "cell_start",
+) -> tuple[IntArray, np.ndarray]:
+    """Check ``n_units`` ranges ``starts`` into ``prim_index``; return counts and owners.
+
+    Checks: both C-contiguous int32 ``(n,)``, ``n_units + 1`` starts rising from 0 to
+    the number of references, ids in ``[0, n_prims)``, increasing within each range,
+    and every primitive listed. Returns each range's length and, per reference, the
+    index of its range (int64). Shared by the uniform, two-level and irregular grids.
+    """
+    for name, a in ((starts_name, starts), ("prim_index", prim_index)):
+        if a.dtype != INDEX or a.ndim != 1 or not a.flags.c_contiguous:
+            raise StructureInvariantError(f"grid: {name} must be C-contiguous int32 (n,)")
+    if starts.shape[0] != n_units + 1:
+        raise StructureInvariantError(f"grid: {starts_name} must have n_{unit}s + 1 entries")
+    n_refs = prim_index.shape[0]
+    counts = np.diff(starts)
+    if starts[0] != 0 or starts[-1] != n_refs or (counts < 0).any():
+        raise StructureInvariantError(f"grid: {starts_name} must rise from 0 to n_refs")
+    if n_refs and (prim_index.min() < 0 or prim_index.max() >= n_prims):
+        raise StructureInvariantError("grid: prim_index entry out of range [0, n_prims)")
+    owner = np.repeat(np.arange(n_units, dtype=np.int64), counts)
+    if n_refs > 1 and ((owner[1:] == owner[:-1]) & (prim_index[1:] <= prim_index[:-1])).any():
+        raise StructureInvariantError(f"grid: ids not increasing within a {unit}")
+    listed = np.zeros(n_prims, dtype=bool)
+    listed[prim_index] = True
+    if not listed.all():
+        raise StructureInvariantError(f"grid: primitive {int(np.argmin(listed))} in no {unit}")
+    return counts, owner
+
+
+def interleaved_box(lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """Return the box as ``(lo_x, hi_x, lo_y, hi_y, lo_z, hi_z)`` float32 (the root box)."""
+    return np.array([lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]], REAL)
+
+
 def validate_box(lo: FloatArray, hi: FloatArray) -> None:
     """Check a grid box: finite float32 ``(3,)`` corners with ``lo < hi`` on every axis."""
     for name, a in (("lo", lo), ("hi", hi)):
@@ -370,9 +398,7 @@ def trace_layout(grid: UniformGrid, hit_rows: FloatArray, mailbox: int) -> GridT
     rows = gather_rows(hit_rows, grid.prim_index)
     return with_mailbox(
         GridTrace(
-            box=np.array(
-                [grid.lo[0], grid.hi[0], grid.lo[1], grid.hi[1], grid.lo[2], grid.hi[2]], REAL
-            ),
+            box=interleaved_box(grid.lo, grid.hi),
             lo=grid.lo.copy(),
             size=((grid.hi - grid.lo) / grid.res).astype(REAL),
             inv_size=(grid.res / (grid.hi - grid.lo)).astype(REAL),
@@ -388,9 +414,10 @@ def trace_layout(grid: UniformGrid, hit_rows: FloatArray, mailbox: int) -> GridT
     )
 
 
-def with_mailbox(layout: GridTrace, mailbox: int) -> GridTrace:
-    """Return ``layout`` with its mailbox size set (a ``(1,)`` int32 array)."""
-    return layout._replace(mailbox=np.array([mailbox], dtype=INDEX))
+def with_mailbox(layout: Layout, mailbox: int) -> Layout:
+    """Return a grid traversal layout with its mailbox size set (a ``(1,)`` int32 array)."""
+    updated: Layout = layout._replace(mailbox=np.array([mailbox], dtype=INDEX))
+    return updated
 
 
 @cpu_kernel(parallel=True)

@@ -55,7 +55,7 @@ from rayaccel.grid.layouts.uniform import (
     trace_layout,
     with_mailbox,
 )
-from rayaccel.grid.traverse.walk import exit_plane, leave_box, start_cell
+from rayaccel.grid.traverse.walk import exit_plane, leave_box, make_mailbox, start_cell
 from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -86,11 +86,6 @@ class DdaOptions:
     def __post_init__(self) -> None:
         if not 0 <= self.mailbox <= MAX_MAILBOX:
             raise InvalidInputError(f"mailbox: expected 0..{MAX_MAILBOX}, got {self.mailbox}")
-
-
-def make_scratch_py(grid):
-    """Return one worker's mailbox ring (at least one slot, so the type is fixed)."""
-    return np.empty(max(grid.mailbox[0], 1), dtype=np.int32)
 
 
 @functools.cache
@@ -277,13 +272,12 @@ def trace_body(skip: bool) -> Any:
     return cpu_inline(trace_rays_py)
 
 
-make_scratch = cpu_inline(make_scratch_py)
 
 
 @functools.cache
 def kernels_for(skip: bool) -> Any:
     """``kernel_for(query, with_stats, parallel)`` of the DDA, skipping empty boxes if ``skip``."""
-    return body_kernels(make_scratch, trace_body(skip))
+    return body_kernels(make_mailbox, trace_body(skip))
 
 
 def grid_layout(

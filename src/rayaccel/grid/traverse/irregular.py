@@ -27,7 +27,8 @@ import numpy as np
 from rayaccel._jit import cpu_inline
 from rayaccel.counters import Counter
 from rayaccel.grid.layouts.irregular import IrregularGrid, IrregularTrace, trace_layout, voxel_cell
-from rayaccel.grid.traverse.walk import INF32, leave_box, start_cell
+from rayaccel.grid.layouts.uniform import with_mailbox
+from rayaccel.grid.traverse.walk import INF32, leave_box, make_mailbox, start_cell
 from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -39,11 +40,6 @@ from rayaccel.trace.skeleton import store_hit
 ZERO32 = np.float32(0.0)
 _CELL_BYTES = 36
 _PRIM_BYTES = 40
-
-
-def make_scratch_py(grid):
-    """Return one worker's mailbox ring (at least one slot, so the type is fixed)."""
-    return np.empty(max(grid.mailbox[0], 1), dtype=np.int32)
 
 
 def trace_rays_py(
@@ -147,9 +143,8 @@ def trace_rays_py(
     return 0
 
 
-make_scratch = cpu_inline(make_scratch_py)
 trace_rays = cpu_inline(trace_rays_py)
-trace_kernel = body_kernels(make_scratch, trace_rays)
+trace_kernel = body_kernels(make_mailbox, trace_rays)
 
 
 def irregular_layout(
@@ -159,7 +154,7 @@ def irregular_layout(
     layout = memoised_layout(
         cache, "grid.irregular.trace", lambda: trace_layout(grid, mesh.hit_rows(), 0)
     )
-    return layout._replace(mailbox=np.array([mailbox], dtype=np.int32))
+    return with_mailbox(layout, mailbox)
 
 
 def trace_irregular(

@@ -24,8 +24,8 @@ import numpy as np
 from rayaccel._jit import cpu_inline
 from rayaccel.counters import Counter
 from rayaccel.grid.layouts.two_level import TwoLevelGrid, TwoLevelTrace, two_level_trace_layout
-from rayaccel.grid.layouts.uniform import SKIP_DISTANCE
-from rayaccel.grid.traverse.walk import exit_plane, leave_box, start_cell
+from rayaccel.grid.layouts.uniform import SKIP_DISTANCE, with_mailbox
+from rayaccel.grid.traverse.walk import exit_plane, leave_box, make_mailbox, start_cell
 from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.queries import QUERY_ANY
 from rayaccel.scene.mesh import TriangleMesh
@@ -37,11 +37,6 @@ INF32 = np.float32(np.inf)
 ZERO32 = np.float32(0.0)
 _CELL_BYTES = 8
 _PRIM_BYTES = 40
-
-
-def make_scratch_py(grid):
-    """Return one worker's mailbox ring (at least one slot)."""
-    return np.empty(max(grid.mailbox[0], 1), dtype=np.int32)
 
 
 @functools.cache
@@ -265,13 +260,12 @@ def trace_body(skip: bool) -> Any:
     return cpu_inline(trace_rays_py)
 
 
-make_scratch = cpu_inline(make_scratch_py)
 
 
 @functools.cache
 def kernels_for(skip: bool) -> Any:
     """``kernel_for(query, with_stats, parallel)`` of DDA in DDA (skipping if ``skip``)."""
-    return body_kernels(make_scratch, trace_body(skip))
+    return body_kernels(make_mailbox, trace_body(skip))
 
 
 def two_level_layout(
@@ -281,4 +275,4 @@ def two_level_layout(
     layout = memoised_layout(
         cache, "grid.two_level_trace", lambda: two_level_trace_layout(grid, mesh.hit_rows())
     )
-    return layout._replace(mailbox=np.array([mailbox], dtype=np.int32))
+    return with_mailbox(layout, mailbox)

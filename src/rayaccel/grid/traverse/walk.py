@@ -1,5 +1,7 @@
 """The steps grid walks share: the start cell, a cell's exit plane, leaving a box of cells.
 
+Also the walks' per-worker scratch, the mailbox ring (:func:`make_mailbox`).
+
 Inline helpers (``rayaccel._jit.cpu_inline``) of the uniform, two-level and irregular
 grid traversals. A walk over a lattice of equal cells (the uniform grid, a top grid,
 the irregular grid's voxels) starts in the cell of its entry point, biased against the
@@ -45,6 +47,17 @@ def exit_plane_py(lo, size, o, inv, cell, step):
 
 start_cell = cpu_inline(start_cell_py)
 exit_plane = cpu_inline(exit_plane_py)
+
+
+def make_mailbox_py(grid):
+    """Return one worker's mailbox ring (at least one slot, so the type is fixed).
+
+    The per-worker scratch of every grid walk: ``grid.mailbox[0]`` recently tested ids.
+    """
+    return np.empty(max(grid.mailbox[0], 1), dtype=np.int32)
+
+
+make_mailbox = cpu_inline(make_mailbox_py)
 
 
 def toward_py(new, old, step):
