@@ -9,6 +9,7 @@ traversals, short-stack sizes, and ropes against the stack bit for bit.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -16,7 +17,7 @@ import rayaccel
 import reference
 from rayaccel import registry
 from rayaccel.errors import InvalidInputError, StructureInvariantError
-from rayaccel.kdtree.layouts.kdtree import MAX_DEPTH, KdTree, max_depth_for
+from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, MAX_DEPTH, KdTree, max_depth_for
 from rayaccel.rays.batch import RayBatch
 
 BUILDS = [
@@ -177,6 +178,81 @@ def test_all_triangles_in_one_plane():
         rays = RayBatch(np.concatenate([o, in_plane_o]), np.concatenate([target - o, in_plane_d]))
         ref = _check_all(accel, rays, key)
         assert ref.hit[:n].mean() > 0.9
+
+
+def _canonical(kd: KdTree, node: int = 0) -> tuple:
+    """The tree below ``node`` as nested tuples, independent of node numbering."""
+    bits = int(kd.node_bits[node])
+    if bits & 3 == LEAF_AXIS:
+        leaf = bits >> 2
+        first = kd.leaf_first[leaf]
+        return tuple(sorted(kd.prim_index[first : first + kd.leaf_count[leaf]].tolist()))
+    child = bits >> 2
+    return (bits & 3, float(kd.nodes[node, 0]), _canonical(kd, child), _canonical(kd, child + 1))
+
+
+@pytest.mark.parametrize("key", ["kdtree.sah", "kdtree.median"])
+def test_parallel_build_is_the_serial_tree(key):
+    """Frontier subtrees built on a thread pool give the serial build's tree (up to
+    node numbering) and the same arrays for every thread count."""
+    mesh = reference.icosphere(3)
+    serial = rayaccel.build(mesh, key, parallel_threshold=0).structure
+    threads = numba.get_num_threads()
+    trees = []
+    for count in sorted({1, threads, 2}):
+        numba.set_num_threads(min(count, numba.config.NUMBA_NUM_THREADS))
+        try:
+            trees.append(rayaccel.build(mesh, key, parallel_threshold=16).structure)
+        finally:
+            numba.set_num_threads(threads)
+    for tree in trees[1:]:
+        for name in ("nodes", "leaf_first", "leaf_count", "prim_index"):
+            assert np.array_equal(getattr(tree, name), getattr(trees[0], name)), name
+    parallel = trees[0]
+    parallel.validate(mesh.triangles())
+    assert not np.array_equal(parallel.nodes, serial.nodes)  # the frontier was used
+    assert (parallel.n_nodes, parallel.n_leaves, parallel.n_refs) == (
+        serial.n_nodes, serial.n_leaves, serial.n_refs,
+    )  # fmt: skip
+    assert _canonical(parallel) == _canonical(serial)
+
+
+def test_perfect_splits_pad_crossings_that_round_near_zero():
+    """Regression (issue 16, found by ``test_properties.py --full``): Sutherland–Hodgman
+    computes a crossing that should be z = 0 as about 5e-26, and padding the clipped bounds
+    only by their own magnitude left the true crossing outside them. The sweep then split
+    at -5.5e-24 and 5.2e-26 and the leaves around z = 0 listed nothing. The bounds are now
+    padded by the float64 error relative to the scene's coordinates."""
+    vertices = np.array(
+        [[-2, -0.5, -2], [-2, -2, -2], [-2, -2, 0], [-2, -2, -2], [-2, -2, -2], [-2, -2, -2],
+         [-2, -2, -2], [-0.5, -2, 1], [-2, -2, -2], [-2, 0, -3.34375]], dtype=np.float64,
+    )  # fmt: skip
+    faces = np.array([[9, 0, 7], [0, 0, 0], [9, 0, 7], [9, 0, 7], [0, 0, 0], [2, 2, 7],
+                      [0, 0, 0], [0, 0, 2], [9, 0, 7]])  # fmt: skip
+    mesh = rayaccel.TriangleMesh(vertices, faces)
+    rays = RayBatch(np.array([[-1.0, -2.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    accel = rayaccel.build(mesh, "kdtree.sah", max_leaf_size=1)
+    accel.validate()
+    ref = _check_all(accel, rays, "kdtree.sah")
+    assert ref.hit[0]
+    assert ref.t[0] == pytest.approx(0.5)
+
+
+def test_validate_checks_slivers_by_their_box():
+    """Regression (issue 16, ``test_properties.py --full``): triangle 0 is collinear but
+    for 2.2e-16 in one coordinate. Clipping rounds its parts away on both sides of a
+    plane, the builder keeps it on both by its box, and ``validate()`` rejected that
+    listing by the exact separating-axis test. Slivers are now checked by their box."""
+    vertices = np.array(
+        [[-1, -2, 2.220446e-16], [-2, -2, -2], [-2, -2, -2], [-2, -2, -2], [-2, -0.5, -1],
+         [-1.5, -1.25, -0.5]], dtype=np.float32,
+    )  # fmt: skip
+    mesh = rayaccel.TriangleMesh(vertices, np.array([[0, 4, 5], [0, 0, 0], [0, 0, 5]]))
+    origin = vertices[[0, 4, 5]].astype(np.float64)
+    rays = RayBatch(origin + np.array([0.25, 0.0, 0.0]), np.tile([-1.0, 0.0, 0.0], (3, 1)))
+    accel = rayaccel.build(mesh, "kdtree.sah", max_leaf_size=1)
+    accel.validate()
+    _check_all(accel, rays, "kdtree.sah")
 
 
 @pytest.mark.parametrize("key", ["kdtree.sah", "kdtree.median"])

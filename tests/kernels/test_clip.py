@@ -137,7 +137,7 @@ def test_polygon_bounds_round_outward_within_the_box():
     hi = np.array([2.0, 2.0, 1.0], np.float32)
     poly, m = clip(tri, lo, hi)
     out = np.empty(6, np.float32)
-    polygon_bounds(poly, m, lo, hi, out)
+    polygon_bounds(poly, m, lo, hi, out, 0.0)
     exact, _ = exact_clip(tri, lo, hi)
     exact = exact.astype(np.float64)
     assert (out[:3] <= exact.min(axis=0)).all()

@@ -183,8 +183,15 @@ def clip_triangle_box_py(tri, prim, lo, hi, poly, scratch, min_vertices):
     return m
 
 
-def polygon_bounds_py(poly, m, lo, hi, out):
+def polygon_bounds_py(poly, m, lo, hi, out, abs_pad):
     """Write the box of polygon ``poly[:m]`` into ``out[0:6]``, rounded outward, within a box.
+
+    Each coordinate ``v`` is padded by ``|v|·ROUND_OUT + abs_pad``. The relative term
+    covers the rounding to float32; ``abs_pad`` covers the float64 error of the
+    crossing points, which is relative to the *operands* (the triangle's and the box's
+    coordinates), not to the result: a crossing that should be 0 can come out as 5e-26,
+    and a pad relative to that alone would leave the true point outside the box.
+    Callers pass about ``2^-40`` times the scene's largest coordinate.
 
     Parameters
     ----------
@@ -197,6 +204,8 @@ def polygon_bounds_py(poly, m, lo, hi, out):
         outward rounding may step just outside.
     out : (6,) float32 ndarray
         ``[lo.x, lo.y, lo.z, hi.x, hi.y, hi.z]``.
+    abs_pad : float
+        The absolute part of the padding (see above).
     """
     for k in range(3):
         out[k] = np.inf
@@ -204,7 +213,7 @@ def polygon_bounds_py(poly, m, lo, hi, out):
     for i in range(m):
         for k in range(3):
             v = poly[i, k]
-            pad = abs(v) * ROUND_OUT
+            pad = abs(v) * ROUND_OUT + abs_pad
             out[k] = min(out[k], np.float32(v - pad))
             out[3 + k] = max(out[3 + k], np.float32(v + pad))
     for k in range(3):

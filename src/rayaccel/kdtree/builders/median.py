@@ -29,15 +29,24 @@ class KdMedianOptions:
         Upper bound on the depth (1..MAX_DEPTH); also capped at ``8 + 1.3·log2 N``.
     perfect_splits : bool
         Clip straddling triangles to each child cell (True) or cut their boxes.
+    parallel_threshold : int
+        After the top levels, subtrees of at most ``max(parallel_threshold, N/64)``
+        triangles are built concurrently (0: serially). The tree does not depend on it
+        nor on the thread count, up to node numbering.
     """
 
     max_leaf_size: int = 4
     max_depth: int = MAX_DEPTH
     perfect_splits: bool = True
+    parallel_threshold: int = 4096
 
     def __post_init__(self) -> None:
         if self.max_leaf_size < 1:
             raise InvalidInputError(f"max_leaf_size must be >= 1, got {self.max_leaf_size}")
+        if self.parallel_threshold < 0:
+            raise InvalidInputError(
+                f"parallel_threshold must be >= 0, got {self.parallel_threshold}"
+            )
         if not 1 <= self.max_depth <= MAX_DEPTH:
             raise InvalidInputError(f"max_depth must be in 1..{MAX_DEPTH}, got {self.max_depth}")
 
@@ -64,6 +73,6 @@ def build_kdtree_median(mesh: TriangleMesh, options: KdMedianOptions | None = No
     opt = options or KdMedianOptions()
     params = SweepParams(
         MODE_MEDIAN, 1.0, 1.0, 1.0, int(opt.max_depth), int(opt.max_leaf_size),
-        bool(opt.perfect_splits),
+        bool(opt.perfect_splits), int(opt.parallel_threshold),
     )  # fmt: skip
     return build_sweep(mesh, params)

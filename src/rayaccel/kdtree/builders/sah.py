@@ -39,6 +39,10 @@ class KdSahOptions:
     max_leaf_size : int
         Nodes with more triangles are split whenever a plane inside the cell exists,
         even when the SAH prefers a leaf (>= 1).
+    parallel_threshold : int
+        After the top levels, subtrees of at most ``max(parallel_threshold, N/64)``
+        triangles are built concurrently (0: serially). The tree does not depend on it
+        nor on the thread count, up to node numbering.
     """
 
     traversal_cost: float = 15.0
@@ -47,6 +51,7 @@ class KdSahOptions:
     perfect_splits: bool = True
     max_depth: int = MAX_DEPTH
     max_leaf_size: int = 1 << 30
+    parallel_threshold: int = 4096
 
     def __post_init__(self) -> None:
         if not self.traversal_cost > 0 or not self.intersection_cost > 0:
@@ -57,6 +62,10 @@ class KdSahOptions:
             raise InvalidInputError(f"max_depth must be in 1..{MAX_DEPTH}, got {self.max_depth}")
         if self.max_leaf_size < 1:
             raise InvalidInputError(f"max_leaf_size must be >= 1, got {self.max_leaf_size}")
+        if self.parallel_threshold < 0:
+            raise InvalidInputError(
+                f"parallel_threshold must be >= 0, got {self.parallel_threshold}"
+            )
 
 
 @register(
@@ -90,5 +99,6 @@ def build_kdtree_sah(mesh: TriangleMesh, options: KdSahOptions | None = None) ->
         int(opt.max_depth),
         int(opt.max_leaf_size),
         bool(opt.perfect_splits),
+        int(opt.parallel_threshold),
     )
     return build_sweep(mesh, params)

@@ -39,6 +39,13 @@ A triangle touching a plane only from one side, or lying in it, is therefore lis
 one side only; the traversals visit closed cells so a ray meeting it on the plane
 still finds it (:mod:`rayaccel.kdtree.traverse`).
 
+Parallelism. Below the top levels the subtrees are independent: the serial
+kernel stops at nodes of at most ``max(parallel_threshold, N/64)`` triangles and
+hands them (with a copy of their events) to a thread pool, one kernel call per
+subtree, largest first (:func:`_build_frontier`); the subtrees are spliced in a
+fixed order, so the tree is the same for every thread count, and the same as the
+serial build's up to node numbering (each node's plane depends only on its events).
+
 Memory. Event lists live in one buffer used as a stack: a split writes the right
 child's list, then the left child's, after its own; the left child (popped first)
 writes its children after that, and the space is reused when a subtree is done.
@@ -46,8 +53,10 @@ writes its children after that, and the space is reused when a subtree is done.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from rayaccel._jit import cpu_inline, cpu_kernel
@@ -80,6 +89,11 @@ class SweepParams(NamedTuple):
     max_depth: int
     max_leaf_size: int
     perfect_splits: bool
+    #: Subtrees of at most ``max(parallel_threshold, N // 64)`` triangles are built
+    #: concurrently after the top levels; 0 builds serially.
+    parallel_threshold: int = 0
+    #: Absolute outward padding of clipped bounds (set by :func:`build_sweep`).
+    round_pad: float = 0.0
 
 
 def initial_events(tri: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -120,15 +134,23 @@ def initial_events(tri: np.ndarray) -> tuple[np.ndarray, ...]:
 def build_sweep(mesh: TriangleMesh, params: SweepParams) -> KdTree:
     """Build a kd-tree over ``mesh`` with the event sweep (see the module docstring)."""
     tri = np.ascontiguousarray(mesh.triangles(), dtype=REAL)
+    n = tri.shape[0]
     lo, hi = mesh.bounds()
     lo = np.ascontiguousarray(lo, dtype=REAL)
     hi = np.ascontiguousarray(hi, dtype=REAL)
     pos, typ, axis, prim = initial_events(tri)
-    max_depth = min(int(params.max_depth), max_depth_for(tri.shape[0]))
-    params = params._replace(max_depth=max_depth)
-    split, bits, leaf_first, leaf_count, prim_index = _build_kernel(
-        tri, lo, hi, pos, typ, axis, prim, params
-    )
+    max_depth = min(int(params.max_depth), max_depth_for(n))
+    # Clipped bounds are padded by the float64 error of the crossing points, which
+    # is relative to the scene's coordinates (see ``polygon_bounds_py``).
+    scale = max(float(np.abs(lo).max()), float(np.abs(hi).max()))
+    params = params._replace(max_depth=max_depth, round_pad=scale * 2.0**-40)
+    threshold = int(params.parallel_threshold)
+    task_prims = max(threshold, n // 64) if 0 < threshold < n else 0
+    top = _build_kernel(tri, lo, hi, pos, typ, axis, prim, params, n, 0, task_prims)
+    tree, tasks = top[:5], top[5:]
+    if tasks[0].size:
+        tree = _build_frontier(tri, params, tree, *tasks)
+    split, bits, leaf_first, leaf_count, prim_index = tree
     nodes = np.empty((split.shape[0], 2), dtype=REAL)
     nodes[:, 0] = split
     nodes.view(np.int32)[:, 1] = bits
@@ -139,9 +161,68 @@ def build_sweep(mesh: TriangleMesh, params: SweepParams) -> KdTree:
         prim_index=prim_index,
         lo=lo,
         hi=hi,
-        n_prims=int(tri.shape[0]),
+        n_prims=n,
         perfect_splits=bool(params.perfect_splits),
     )
+
+
+def _build_frontier(
+    tri: np.ndarray,
+    params: SweepParams,
+    top: tuple[np.ndarray, ...],
+    t_node: np.ndarray,
+    t_n: np.ndarray,
+    t_depth: np.ndarray,
+    t_cell: np.ndarray,
+    t_range: np.ndarray,
+    *events: np.ndarray,
+) -> tuple[np.ndarray, ...]:
+    """Build the frontier subtrees concurrently and splice them into the top tree.
+
+    Each task is a kernel call (``nogil``) on a thread of a pool of
+    ``numba.get_num_threads()``, largest first. The STYLE's ``prange`` over a
+    frontier with prefix-sum allocation does not fit here: a subtree's node and
+    reference counts are unknown until it is built (perfect splits duplicate
+    references), so each subtree builds into its own arrays. They are spliced in
+    task order, so the tree does not depend on the thread count: subtree ``i``'s
+    root fills the top tree's node ``t_node[i]``, its other nodes, leaves and
+    references are appended, and its child and leaf indices shifted accordingly.
+    """
+
+    def build_task(i: int) -> tuple[np.ndarray, ...]:
+        a, b = t_range[2 * i], t_range[2 * i + 1]
+        cell = t_cell[6 * i : 6 * i + 6]
+        subtree: tuple[np.ndarray, ...] = _build_kernel(
+            tri, cell[:3], cell[3:], *(e[a:b] for e in events), params, int(t_n[i]),
+            int(t_depth[i]), 0,
+        )[:5]  # fmt: skip
+        return subtree
+
+    largest_first = [int(i) for i in np.argsort(-t_n, kind="stable")]
+    with ThreadPoolExecutor(max_workers=numba.get_num_threads()) as pool:
+        built = dict(zip(largest_first, pool.map(build_task, largest_first), strict=True))
+    split, bits, first, count, prims = (np.array(a) for a in top)
+    parts = [[split], [bits], [first], [count], [prims]]
+    n_nodes, n_leaves, n_refs = split.size, first.size, prims.size
+    for i in range(t_node.size):
+        s_split, s_bits, s_first, s_count, s_prims = built[i]
+        leaf = (s_bits & 3) == LEAF_AXIS
+        payload = (s_bits >> 2).astype(np.int64)
+        payload = np.where(leaf, payload + n_leaves, payload - 1 + n_nodes)
+        s_bits = ((payload << 2) | (s_bits & 3)).astype(np.int32)
+        split[t_node[i]] = s_split[0]
+        bits[t_node[i]] = s_bits[0]
+        for part, new in zip(
+            parts, (s_split[1:], s_bits[1:], s_first + n_refs, s_count, s_prims), strict=True
+        ):
+            part.append(new)
+        n_nodes += s_split.size - 1
+        n_leaves += s_first.size
+        n_refs += s_prims.size
+    spliced: tuple[np.ndarray, ...] = tuple(
+        np.ascontiguousarray(np.concatenate(part)) for part in parts
+    )
+    return spliced
 
 
 @cpu_inline
@@ -173,7 +254,16 @@ def _less(a0, p0, t0, a1, p1, t1):
 
 
 @cpu_kernel()
-def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
+def _build_kernel(
+    tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params, n0, depth0, task_prims
+):
+    """Build the subtree of a cell with ``n0`` triangles at depth ``depth0`` from its events.
+
+    With ``task_prims > 0`` a node below the root with at most ``task_prims``
+    triangles is not split but recorded as a frontier task (its node, triangle
+    count, depth, cell and a copy of its events) for :func:`build_sweep` to build
+    concurrently. Returns the tree's arrays, then the tasks'.
+    """
     n_prims = tri.shape[0]
     k_t = params.traversal_cost
     k_i = params.intersection_cost
@@ -233,8 +323,20 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
     s_node[0] = 0
     s_begin[0] = 0
     s_end[0] = m0
-    s_n[0] = n_prims
-    s_depth[0] = 0
+    s_n[0] = n0
+    s_depth[0] = depth0
+    # Frontier tasks: node, triangles, depth, cell (6 floats each), event range.
+    n_tasks = 0
+    n_task_events = 0
+    t_node = np.empty(16, dtype=np.int32)
+    t_n = np.empty(16, dtype=np.int32)
+    t_depth = np.empty(16, dtype=np.int32)
+    t_cell = np.empty(96, dtype=np.float32)
+    t_range = np.empty(32, dtype=np.int64)
+    tp_pos = np.empty(16, dtype=np.float32)
+    tp_typ = np.empty(16, dtype=np.int8)
+    tp_axis = np.empty(16, dtype=np.int8)
+    tp_prim = np.empty(16, dtype=np.int32)
     for a in range(3):
         s_lo[0, a] = scene_lo[a]
         s_hi[0, a] = scene_hi[a]
@@ -249,6 +351,34 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
         for a in range(3):
             c_lo[a] = s_lo[sp, a]
             c_hi[a] = s_hi[sp, a]
+        if task_prims > 0 and depth > depth0 and n <= task_prims:
+            # ---- a frontier subtree, built later (concurrently)
+            if n_tasks == t_node.shape[0]:
+                t_node = _grow_f(t_node, n_tasks + 1)
+                t_n = _grow_f(t_n, n_tasks + 1)
+                t_depth = _grow_f(t_depth, n_tasks + 1)
+            t_cell = _grow_f(t_cell, 6 * (n_tasks + 1))
+            t_range = _grow_f(t_range, 2 * (n_tasks + 1))
+            stop = n_task_events + (end - begin)
+            tp_pos = _grow_f(tp_pos, stop)
+            tp_typ = _grow_f(tp_typ, stop)
+            tp_axis = _grow_f(tp_axis, stop)
+            tp_prim = _grow_f(tp_prim, stop)
+            tp_pos[n_task_events:stop] = e_pos[begin:end]
+            tp_typ[n_task_events:stop] = e_typ[begin:end]
+            tp_axis[n_task_events:stop] = e_axis[begin:end]
+            tp_prim[n_task_events:stop] = e_prim[begin:end]
+            t_node[n_tasks] = node
+            t_n[n_tasks] = n
+            t_depth[n_tasks] = depth
+            for a in range(3):
+                t_cell[6 * n_tasks + a] = c_lo[a]
+                t_cell[6 * n_tasks + 3 + a] = c_hi[a]
+            t_range[2 * n_tasks] = n_task_events
+            t_range[2 * n_tasks + 1] = stop
+            n_task_events = stop
+            n_tasks += 1
+            continue
         # ---- choose a plane
         best_axis = -1
         best_pos = np.float32(0.0)
@@ -475,7 +605,7 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
                                 keep[j] = 0
                                 dropped += 1
                     if m >= 1:
-                        polygon_bounds(poly, m, box_lo, box_hi, bounds)
+                        polygon_bounds(poly, m, box_lo, box_hi, bounds, params.round_pad)
                     else:
                         # The triangle's box cut by the cell (also the fallback when
                         # rounding clips a touching triangle away).
@@ -580,4 +710,13 @@ def _build_kernel(tri, scene_lo, scene_hi, pos0, typ0, axis0, prim0, params):
         out_first[:n_leaves].copy(),
         out_count[:n_leaves].copy(),
         out_prims[:n_refs].copy(),
+        t_node[:n_tasks].copy(),
+        t_n[:n_tasks].copy(),
+        t_depth[:n_tasks].copy(),
+        t_cell[: 6 * n_tasks].copy(),
+        t_range[: 2 * n_tasks].copy(),
+        tp_pos[:n_task_events].copy(),
+        tp_typ[:n_task_events].copy(),
+        tp_axis[:n_task_events].copy(),
+        tp_prim[:n_task_events].copy(),
     )

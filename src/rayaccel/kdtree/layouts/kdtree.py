@@ -44,6 +44,10 @@ NODE_BYTES = 8
 LEAF_BYTES = 8
 REF_BYTES = 4
 TRIANGLE_BYTES = 36
+#: ``validate()`` checks a triangle by its box when the components of ``e1 × e2`` sum to
+#: at most ``SLIVER·(|e1|² + |e2|²)``: thinner than float32 resolves, clipping may
+#: round it away.
+SLIVER = 2.0**-40
 
 
 def max_depth_for(n_prims: int) -> int:
@@ -185,10 +189,10 @@ class KdTree:
         every split inside its node's cell; every leaf referenced by exactly one node,
         its range inside ``prim_index``; ids in range, none twice in one leaf, every
         primitive listed somewhere. Given ``triangles (F, 3, 3)``: every listed
-        triangle (its box, without perfect splits) overlaps its leaf's closed cell grown
-        by 1e-6 of the scene's size (clipped bounds are rounded outward), and every
-        triangle is listed in each leaf whose open cell it overlaps (the cell shrunk by
-        1e-6 of the scene's size).
+        triangle (its box, without perfect splits or for a sliver, see :data:`SLIVER`)
+        overlaps its leaf's closed cell grown by 1e-6 of the scene's size (clipped
+        bounds are rounded outward), and every triangle is listed in each leaf whose
+        open cell it overlaps (the cell shrunk by 1e-6 of the scene's size).
         """
         n = self.n_nodes
         if n == 0:
@@ -374,9 +378,11 @@ def _check_listed_overlap(tri, prim_index, leaf_of_ref, node_of_leaf, lo, hi, ex
     The cell is grown by ``grow`` on every side: clipped bounds are rounded outward, so
     a triangle touching a cell within rounding is listed there. Without ``exact`` (no
     perfect splits) the triangle's box is tested instead. Zero-area triangles are not
-    checked exactly: the watertight test never hits them (its determinant is zero), so
-    the leaves that list them cannot change a hit, while clipping and the separating-axis
-    test disagree on such slivers.
+    checked: the watertight test never hits them (its determinant is zero), so the
+    leaves that list them cannot change a hit, while clipping and the separating-axis
+    test disagree on them. Slivers (twice the area at most :data:`SLIVER` times the
+    squared edges) are checked by their box: clipping may round their parts away on
+    both sides of a plane, and the builder then keeps them on both by their box.
     """
     g_lo = np.empty(3, dtype=np.float32)
     g_hi = np.empty(3, dtype=np.float32)
@@ -392,7 +398,8 @@ def _check_listed_overlap(tri, prim_index, leaf_of_ref, node_of_leaf, lo, hi, ex
         area2 = abs(e1y * e2z - e1z * e2y) + abs(e1z * e2x - e1x * e2z) + abs(e1x * e2y - e1y * e2x)
         if exact and area2 == 0.0:
             continue
-        if exact:
+        e2 = e1x * e1x + e1y * e1y + e1z * e1z + e2x * e2x + e2y * e2y + e2z * e2z
+        if exact and area2 > SLIVER * e2:
             for a in range(3):
                 g_lo[a] = lo[node, a] - grow
                 g_hi[a] = hi[node, a] + grow
