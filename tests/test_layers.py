@@ -3,8 +3,8 @@
 Layers, lowest first: 0 ``_jit dtypes errors counters config queries _variant _atomic
 _hugepages _work``; 1 ``kernels``; 2 ``scene rays``; 3 ``trace`` (the family-neutral
 traversal core); 4 ``bvh kdtree grid``; 5 ``cuda``; 6 ``registry metrics``; 7 ``api``;
-8 ``render bench precompile``; 9 ``cli``. A module imports only from its own layer or lower
-ones; sibling packages of one layer (``scene``/``rays``, ``bvh``/``kdtree``/``grid``,
+8 ``render bench precompile``; 9 ``study``; 10 ``cli``. A module imports only from its own
+layer or lower ones; sibling packages of one layer (``scene``/``rays``, ``bvh``/``kdtree``/``grid``,
 ``registry``/``metrics``, ``render``/``bench``) stay independent, so no family imports
 another. No module imports another module's private (``_name``) names. The package
 ``__init__``/``__main__`` re-export and are exempt. Imports inside functions and
@@ -38,7 +38,8 @@ LAYERS: dict[str, int] = {
     "registry": 6, "metrics": 6,
     "api": 7,
     "render": 8, "bench": 8, "precompile": 8,
-    "cli": 9,
+    "study": 9,  # not in STYLE §2: the thesis's study (path-traced rays, sweeps, reports)
+    "cli": 10,
 }
 #: Layer-0 modules are one foundation and may import each other; packages may not.
 FOUNDATION = 0

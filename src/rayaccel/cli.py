@@ -290,6 +290,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     from rayaccel.render import heatmap as hm
     from rayaccel.render.shading import shade
 
+    if args.view == "path":
+        return _render_path(args)
+    if args.record or args.exr:
+        raise InvalidInputError("--record and --exr go with --view path")
     if args.view == "heatmap":
         hm.check_metric(args.metric)
     elif args.legend:
@@ -339,6 +343,46 @@ def cmd_render(args: argparse.Namespace) -> int:
         for (name, image), path in zip(images, paths, strict=True):
             hm.write_png(path, image)
             _out(f"{path}: {name} shaded{f', {args.ao} AO rays per pixel' if args.ao else ''}")
+    return 0
+
+
+def _render_path(args: argparse.Namespace) -> int:
+    """``render --view path``: path trace one structure; record its rays with ``--record``."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    from rayaccel import api
+    from rayaccel.render import heatmap as hm
+    from rayaccel.render.path import PathOptions
+    from rayaccel.study.recording import render_scene
+
+    builders = _builder_keys(args.accel, default_all=False)
+    traversals = _split_list(args.traversal)
+    if len(builders) > 1 or len(traversals) > 1:
+        raise InvalidInputError("--view path renders one structure and traversal at a time")
+    for path in (args.output, args.exr):
+        if path is not None and not Path(path).parent.resolve().is_dir():
+            raise InvalidInputError(f"{path}: the folder does not exist")
+    options = PathOptions(spp=args.spp, max_depth=args.max_depth, seed=args.seed)
+    mesh = load_scene(args.scene, parse_options(args.scene_option))
+    accel = api.build(mesh, builders[0], **parse_options(args.option))
+    with Progress("[bold]path[/]", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=Console(stderr=True), transient=True) as bar:  # fmt: skip
+        task = bar.add_task("samples", total=options.spp)
+        image = render_scene(
+            mesh, args.scene, accel=accel, traversal=traversals[0] if traversals else None,
+            width=args.width, height=args.height, options=options, record_to=args.record,
+            progress=lambda done, total: bar.update(task, completed=done),
+        )  # fmt: skip
+    hm.write_png(args.output, image.tonemapped(args.exposure))
+    _out(f"{args.output}: path traced, {options.spp} samples per pixel, depth {options.max_depth}")
+    if args.exr:
+        image.write_exr(args.exr)
+        _out(f"{args.exr}: linear radiance (OpenEXR)")
+    counts = ", ".join(f"{name} {n:,}" for name, n in image.counts.items())
+    _out(f"rays: {counts}")
+    if args.record:
+        _out(f"{args.record}: recorded ray sets (rays.json lists them)")
     return 0
 
 
@@ -497,7 +541,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY",
         help=f"traversal key ({traversals}); default the structure's stack traversal",
     )
-    p.add_argument("--view", choices=("shade", "heatmap"), default="shade")
+    p.add_argument("--view", choices=("shade", "heatmap", "path"), default="shade",
+                   help="shade: headlight preview; heatmap: a counter per pixel; path: path "
+                        "tracing (materials and lights of the scene)")  # fmt: skip
     p.add_argument(
         "--metric",
         default="nodes",
@@ -519,6 +565,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="ambient occlusion rays per pixel for --view shade (0: off)",
     )
     p.add_argument("--ao-radius", type=float, help="ambient occlusion distance")
+    p.add_argument("--spp", type=_positive_int, default=4,
+                   help="--view path: samples per pixel (default 4)")  # fmt: skip
+    p.add_argument("--max-depth", type=_nonnegative_int, default=3,
+                   help="--view path: bounces after the camera ray (default 3)")  # fmt: skip
+    p.add_argument("--exposure", type=float, default=1.0,
+                   help="--view path: radiance scale before the sRGB encoding")  # fmt: skip
+    p.add_argument("--exr", help="--view path: also write the linear radiance as OpenEXR")
+    p.add_argument(
+        "--record", metavar="DIR", help="--view path: record the ray sets into DIR (rays.json)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--option", action="append", metavar="K=V", help=option_help)
     p.add_argument("--scene-option", action="append", metavar="K=V",

@@ -166,7 +166,8 @@ class PinholeCamera:
         up = np.cross(right, forward)
         return forward, right, up
 
-    def _half_extent(self) -> tuple[float, float]:
+    def half_extent(self) -> tuple[float, float]:
+        """Half the image plane's width and height at distance 1 along ``forward``."""
         half_height = math.tan(math.radians(self.fov_deg) / 2.0)
         return half_height * self.width / self.height, half_height
 
@@ -182,7 +183,7 @@ class PinholeCamera:
             ``(row, col) = divmod(k, width)`` with row 0 at the top.
         """
         forward, right, up = self.frame()
-        half_width, half_height = self._half_extent()
+        half_width, half_height = self.half_extent()
         # Image-plane coordinates of the pixel centres at distance 1 along forward
         x = (2.0 * (np.arange(self.width) + 0.5) / self.width - 1.0) * half_width
         y = (1.0 - 2.0 * (np.arange(self.height) + 0.5) / self.height) * half_height
@@ -222,7 +223,7 @@ class PinholeCamera:
         if array.ndim != 2 or array.shape[1] != 3:
             raise InvalidInputError(f"points: expected shape (n, 3), got {array.shape}")
         forward, right, up = self.frame()
-        half_width, half_height = self._half_extent()
+        half_width, half_height = self.half_extent()
         relative = array - np.asarray(self.eye)
         depth = relative @ forward
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -9,6 +9,7 @@ are kept (a correct ray/triangle test never reports a hit on them).
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -152,6 +153,18 @@ class TriangleMesh:
         with np.errstate(invalid="ignore", divide="ignore"):
             unit = np.where(length > 0, cross / np.where(length > 0, length, 1.0), 0.0)
         return unit.astype(REAL)
+
+    def digest(self) -> str:
+        """Return the SHA-256 (hex) of the vertex and face arrays: the scene's identity.
+
+        Recorded ray sets carry it, so a study refuses rays recorded on another scene.
+        The name is not part of it.
+        """
+        h = hashlib.sha256()
+        for array in (self.vertices, self.faces):
+            h.update(f"{array.dtype.str}{array.shape}".encode())
+            h.update(np.ascontiguousarray(array).tobytes())
+        return h.hexdigest()
 
     def __repr__(self) -> str:
         return (

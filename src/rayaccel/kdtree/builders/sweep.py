@@ -63,6 +63,7 @@ from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, KdTree, max_depth_for
 from rayaccel.kernels.clip import clip_triangle_box, polygon_bounds
+from rayaccel.kernels.radix_sort import radix_sort
 from rayaccel.scene.mesh import TriangleMesh
 
 #: Event types, in sort order at one position.
@@ -122,7 +123,12 @@ def initial_events(tri: np.ndarray) -> tuple[np.ndarray, ...]:
     typ = np.concatenate(type_parts)
     axis = np.concatenate(axis_parts)
     prim = np.concatenate(prim_parts).astype(INDEX)
-    order = np.lexsort((typ, pos, axis))
+    # One 36-bit key (axis, position with its float order, type), sorted stably by
+    # the parallel radix sort: the order of a lexsort on (axis, pos, type).
+    bits = pos.view(np.uint32).astype(np.int64)
+    ordered = np.where(bits >= 1 << 31, (~bits) & 0xFFFFFFFF, bits | 1 << 31)
+    key = (axis.astype(np.int64) << 34) | (ordered << 2) | typ.astype(np.int64)
+    _, order = radix_sort(key, np.arange(key.size, dtype=np.int32), 36)
     return (
         np.ascontiguousarray(pos[order]),
         np.ascontiguousarray(typ[order]),

@@ -1,0 +1,1 @@
+"""The thesis's study: path-traced ray sets, sweeps over structures and ray sets, reports."""
