@@ -444,6 +444,35 @@ def _print_bench(records: list[dict[str, Any]], notes: list[str], *, markdown: b
         _out(f"note: {note}")
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """Run (or resume) a sweep: every cell of a configuration, records appended to a file."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    from rayaccel.study.config import load_config
+    from rayaccel.study.sweep import sweep
+
+    config = load_config(args.config)
+    if args.workers < 0:
+        raise InvalidInputError("--workers must be >= 0")
+    with Progress("[bold]sweep[/]", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  "{task.description}", console=Console(stderr=True),
+                  transient=True) as bar:  # fmt: skip
+        task = bar.add_task("", total=None)
+
+        def step(done: int, total: int, label: str) -> None:
+            bar.update(task, completed=done, total=total, description=label)
+
+        summary = sweep(config, args.output, workers=args.workers, scheduler=args.scheduler,
+                        rays_folder=args.rays, progress=step)  # fmt: skip
+    _out(f"{args.output}: {summary.ran} cells run ({summary.failed} failed), "
+         f"{summary.skipped} already done, of {summary.cells}")  # fmt: skip
+    _out(f"time: {summary.wall_seconds:.1f} s in all, {summary.cell_seconds:.1f} s in cells, "
+         f"{summary.rays_seconds:.1f} s making ray sets; sweep overhead "
+         f"{100 * summary.overhead:.1f}%")  # fmt: skip
+    return 1 if summary.failed else 0
+
+
 def cmd_cache(args: argparse.Namespace) -> int:
     """Show, clear or fill numba's on-disk cache of rayaccel kernels."""
     from rayaccel.bench.harness import numba_cache_dirs, numba_cache_files
@@ -622,6 +651,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="size of the compile warm-up mesh (default 40000, enough to "
                         "reach the parallel build paths)")  # fmt: skip
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("sweep", parents=[common], help="the study: every structure x "
+                       "traversal x ray set of a TOML configuration, resumable")  # fmt: skip
+    p.add_argument("config", help="sweep configuration (TOML; see docs/study.md)")
+    p.add_argument("-o", "--output", required=True,
+                   help="results file (JSON lines), created or resumed")  # fmt: skip
+    p.add_argument("--workers", type=int, default=0,
+                   help="run on a local Dask cluster of this many processes (0: here)")  # fmt: skip
+    p.add_argument("--scheduler", help="run on the Dask cluster at this address (tcp://HOST:PORT)")
+    p.add_argument("--rays", help="folder for recorded ray sets (default <output>.rays)")
+    p.set_defaults(func=cmd_sweep)
 
     p = sub.add_parser("cache", parents=[common], help="numba's cache of compiled kernels")
     p.add_argument("action", choices=("clear", "info", "warm"),

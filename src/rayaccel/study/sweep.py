@@ -1,0 +1,283 @@
+"""Run a sweep: every cell of a configuration, resumable, in this process or on Dask.
+
+:func:`sweep` reads the results file first (:mod:`rayaccel.study.results`) and runs
+only the cells it does not hold, so an interrupted sweep (Ctrl-C, SIGKILL, a
+crash) resumes where it stopped and repeats no finished cell. Scenes are done one
+at a time: the client loads the mesh and makes its ray sets
+(:mod:`rayaccel.study.raysets`), then runs its cells (:mod:`rayaccel.study.cells`)
+and appends each record as it arrives. A cell that raises is tried again, up to
+:data:`MAX_ATTEMPTS` times, then recorded as failed with its error.
+
+With ``workers`` or ``scheduler`` the cells run on a ``dask.distributed`` cluster
+(a ``LocalCluster`` of ``workers`` single-threaded processes, or the cluster at
+``scheduler``). The mesh and ray sets of a scene are scattered to every worker once
+(``broadcast``); each worker builds the structures it needs and keeps them for
+its next cells. Build and timing cells run one at a time per machine: the client
+keeps at most one of them in flight per host, pinned to one worker of that host,
+so two timings never share a machine; counter cells go to any worker, so they
+fill the others. A
+worker that dies has its cell re-run by Dask (up to its ``allowed-failures``), and
+then by the sweep, up to :data:`MAX_ATTEMPTS` times in all. The single writer is
+this process.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rayaccel.bench.harness import environment
+from rayaccel.scene import catalog
+from rayaccel.study.cells import Cell, Record, cells_by_scene, enumerate_cells, run_cell
+from rayaccel.study.config import SweepConfig, load_config
+from rayaccel.study.raysets import scene_raysets
+from rayaccel.study.results import ResultsFile
+
+#: Tries of a cell before it is recorded as failed for good.
+MAX_ATTEMPTS = 3
+
+Progress = Callable[[int, int, str], Any]
+
+
+@dataclass(frozen=True, slots=True)
+class SweepSummary:
+    """What one call of :func:`sweep` did.
+
+    Attributes
+    ----------
+    cells : int
+        Cells of the configuration.
+    skipped : int
+        Cells already finished in the results file.
+    ran : int
+        Cells run now (including failed ones).
+    failed : int
+        Cells recorded as failed now.
+    wall_seconds : float
+        Wall-clock time of the whole call.
+    cell_seconds : float
+        Sum of the cells' own times (what the work itself took).
+    rays_seconds : float
+        Time spent making the scenes' ray sets (path tracing included).
+    """
+
+    cells: int
+    skipped: int
+    ran: int
+    failed: int
+    wall_seconds: float
+    cell_seconds: float
+    rays_seconds: float
+
+    @property
+    def overhead(self) -> float:
+        """Return the sweep's own share of the time, beyond its cells and ray sets."""
+        work = self.cell_seconds + self.rays_seconds
+        return (self.wall_seconds - work) / work if work > 0 else 0.0
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("rayaccel")
+    except Exception:  # not installed: running from a source tree
+        return "unknown"
+
+
+def sweep(
+    config: SweepConfig | str | os.PathLike[str],
+    results: str | os.PathLike[str],
+    *,
+    workers: int = 0,
+    scheduler: str | None = None,
+    rays_folder: str | os.PathLike[str] | None = None,
+    progress: Progress | None = None,
+) -> SweepSummary:
+    """Run the cells of ``config`` not yet in ``results``; append their records.
+
+    Parameters
+    ----------
+    config : SweepConfig or path-like
+        The configuration, or its TOML file (:func:`rayaccel.study.config.load_config`).
+    results : path-like
+        The JSON-lines results file, created or resumed.
+    workers : int
+        Run on a local Dask cluster of this many processes (0: in this process).
+    scheduler : str, optional
+        Address of an existing Dask scheduler (``tcp://host:port``) to run on.
+    rays_folder : path-like, optional
+        Where recorded ray sets go; default ``<results>.rays`` beside the results.
+    progress : callable, optional
+        Called as ``progress(done, total, label)`` after each cell.
+
+    Returns
+    -------
+    SweepSummary
+    """
+    start = time.perf_counter()
+    cfg = config if isinstance(config, SweepConfig) else load_config(config)
+    results_path = Path(results)
+    rays_dir = Path(rays_folder) if rays_folder else results_path.with_suffix(".rays")
+    out = ResultsFile(results_path, {"rayaccel": _version(), "config": cfg.as_record(),
+                                     "environment": environment()})  # fmt: skip
+    cells = enumerate_cells(cfg)
+    finished = out.finished_keys(MAX_ATTEMPTS)
+    todo = [cell for cell in cells if cell.key not in finished]
+    state = _State(out, len(todo), progress)
+    rays_seconds = 0.0
+    runner: _Runner = (
+        _DaskRunner(workers, scheduler) if workers > 0 or scheduler else _LocalRunner()
+    )
+    try:
+        for scene, scene_cells in cells_by_scene(todo):
+            t0 = time.perf_counter()
+            mesh = catalog.get(scene)
+            needs_rays = any(cell.kind != "build" for cell in scene_cells)
+            raysets = scene_raysets(mesh, scene, cfg.rays, rays_dir) if needs_rays else {}
+            rays_seconds += time.perf_counter() - t0
+            runner.run(scene_cells, cfg, mesh, raysets, state)
+    finally:
+        runner.close()
+    return SweepSummary(
+        cells=len(cells),
+        skipped=len(cells) - len(todo),
+        ran=state.ran,
+        failed=state.failed,
+        wall_seconds=time.perf_counter() - start,
+        cell_seconds=state.cell_seconds,
+        rays_seconds=rays_seconds,
+    )
+
+
+class _State:
+    """The writer's bookkeeping: records appended, failures, progress."""
+
+    def __init__(self, out: ResultsFile, total: int, progress: Progress | None) -> None:
+        self.out = out
+        self.total = total
+        self.progress = progress
+        self.ran = 0
+        self.failed = 0
+        self.cell_seconds = 0.0
+
+    def finish(self, record: Record, attempts: int) -> None:
+        record["attempts"] = attempts
+        self.out.append(record)
+        self.ran += 1
+        self.failed += record["status"] != "ok"
+        self.cell_seconds += float(record.get("seconds", 0.0))
+        if self.progress is not None:
+            self.progress(self.ran, self.total, record["key"])
+
+
+class _Runner:
+    def run(self, cells: list[Cell], config: SweepConfig, mesh: Any, raysets: dict[str, Any],
+            state: _State) -> None:  # fmt: skip
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release what the runner holds."""
+
+
+class _LocalRunner(_Runner):
+    """Cells one after the other in this process."""
+
+    def run(self, cells: list[Cell], config: SweepConfig, mesh: Any, raysets: dict[str, Any],
+            state: _State) -> None:  # fmt: skip
+        for cell in cells:
+            rayset = raysets.get(cell.rayset) if cell.rayset else None
+            for attempt in range(1, MAX_ATTEMPTS + 1):
+                record = run_cell(cell, config, mesh, rayset)
+                if record["status"] == "ok" or attempt == MAX_ATTEMPTS:
+                    state.finish(record, attempt)
+                    break
+
+
+def _killed_record(cell: Cell, exc: BaseException) -> Record:
+    record = cell.fields()
+    record.update(status="failed", error=f"{type(exc).__name__}: {exc}", seconds=0.0)
+    return record
+
+
+class _DaskRunner(_Runner):
+    """Cells on a ``dask.distributed`` cluster (see the module docstring)."""
+
+    def __init__(self, workers: int, scheduler: str | None) -> None:
+        from dask.distributed import Client, LocalCluster
+
+        self.cluster = None
+        if scheduler:
+            self.client = Client(scheduler)
+        else:
+            self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                        dashboard_address=None)  # fmt: skip
+            self.client = Client(self.cluster)
+
+    def close(self) -> None:
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+    def _hosts(self) -> dict[str, list[str]]:
+        """Return the workers of each host."""
+        hosts: dict[str, list[str]] = {}
+        for address, info in self.client.scheduler_info()["workers"].items():
+            hosts.setdefault(info.get("host", address), []).append(address)
+        return {host: sorted(addresses) for host, addresses in hosts.items()}
+
+    def run(self, cells: list[Cell], config: SweepConfig, mesh: Any, raysets: dict[str, Any],
+            state: _State) -> None:  # fmt: skip
+        from dask.distributed import as_completed
+
+        client = self.client
+        hosts = self._hosts()
+        timers = {host: addresses[0] for host, addresses in hosts.items()}
+        mesh_f = client.scatter(mesh, broadcast=True)
+        sets_f = {name: client.scatter(rs, broadcast=True) for name, rs in raysets.items()}
+        attempts: dict[str, int] = {}
+        exclusive = deque(cell for cell in cells if cell.exclusive)
+        busy: dict[str, bool] = dict.fromkeys(timers, False)
+        futures: dict[Any, tuple[Cell, str | None]] = {}
+        done = as_completed()
+
+        def submit(cell: Cell, host: str | None) -> None:
+            attempts[cell.key] = attempts.get(cell.key, 0) + 1
+            rayset = sets_f.get(cell.rayset) if cell.rayset else None
+            where = [timers[host]] if host is not None else None
+            future = client.submit(run_cell, cell, config, mesh_f, rayset, workers=where,
+                                   pure=False)  # fmt: skip
+            futures[future] = (cell, host)
+            done.add(future)
+
+        def feed_exclusive() -> None:
+            for host in timers:
+                if not busy[host] and exclusive:
+                    busy[host] = True
+                    submit(exclusive.popleft(), host)
+
+        for cell in cells:
+            if not cell.exclusive:
+                submit(cell, None)
+        feed_exclusive()
+        for future in done:
+            cell, host = futures.pop(future)
+            try:
+                record = future.result()
+            except Exception as exc:  # the worker died more often than Dask allows
+                record = _killed_record(cell, exc)
+            if host is not None:
+                busy[host] = False
+            if record["status"] != "ok" and attempts[cell.key] < MAX_ATTEMPTS:
+                if host is not None:
+                    exclusive.appendleft(cell)
+                else:
+                    submit(cell, None)
+            else:
+                state.finish(record, attempts[cell.key])
+            feed_exclusive()
