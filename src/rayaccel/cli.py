@@ -473,6 +473,15 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 1 if summary.failed else 0
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    """Write the study's HTML report of a sweep's results file; print the page's path."""
+    from rayaccel.study.report import write_report
+
+    index = write_report(args.results, args.output, heatmaps=args.heatmaps)
+    _out(str(index))
+    return 0
+
+
 def cmd_cache(args: argparse.Namespace) -> int:
     """Show, clear or fill numba's on-disk cache of rayaccel kernels."""
     from rayaccel.bench.harness import numba_cache_dirs, numba_cache_files
@@ -662,6 +671,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", help="run on the Dask cluster at this address (tcp://HOST:PORT)")
     p.add_argument("--rays", help="folder for recorded ray sets (default <output>.rays)")
     p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("report", parents=[common], help="the study's HTML report of a "
+                       "sweep's results: tables, charts, optional heatmaps")  # fmt: skip
+    p.add_argument("results", help="results file of a sweep (JSON lines)")
+    p.add_argument("-o", "--output", required=True,
+                   help="folder of the report (index.html and its PNG files)")  # fmt: skip
+    p.add_argument("--heatmaps", action="store_true",
+                   help="also draw each scene's heatmaps (builds and traces again)")  # fmt: skip
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("cache", parents=[common], help="numba's cache of compiled kernels")
     p.add_argument("action", choices=("clear", "info", "warm"),

@@ -23,6 +23,8 @@ cells of one structure reuse it.
 from __future__ import annotations
 
 import functools
+import os
+import socket
 import time
 import traceback
 from collections.abc import Callable, Iterator
@@ -91,6 +93,7 @@ def enumerate_cells(config: SweepConfig) -> list[Cell]:
     """Return every cell of ``config``: per scene, builds, then counters, then timings."""
     digest = config.rays.digest()
     cells: list[Cell] = []
+    wanted = set(config.passes)
     for scene in config.scenes:
         for builder in config.builders:
             for threads in config.threads:
@@ -106,7 +109,7 @@ def enumerate_cells(config: SweepConfig) -> list[Cell]:
                         cells.append(
                             Cell("timing", scene, builder, traversal, rayset, threads, digest)
                         )
-    return cells
+    return [cell for cell in cells if cell.kind in wanted]
 
 
 class _Threads:
@@ -235,10 +238,12 @@ def run_cell(
 ) -> Record:
     """Run one cell; return its record (``status`` "ok", or "failed" with the error).
 
-    The record carries ``seconds``, the cell's own wall-clock time.
+    The record carries ``seconds``, the cell's own wall-clock time, and when
+    (``started``, Unix time) and where (``host``, ``pid``) it ran.
     """
     start = time.perf_counter()
     record: Record = cell.fields()
+    record.update(started=time.time(), host=socket.gethostname(), pid=os.getpid())
     try:
         if cell.kind == "build":
             record.update(_build(cell, config, mesh))

@@ -10,6 +10,7 @@ Example (``benchmarks/study/bundled.toml`` is the committed one)::
     repeats = 5                   # timed passes per timing cell
     build_repeats = 3
     validate = 200                # rays per cell checked against the oracle
+    passes = ["build", "counters", "timing"]   # the kinds of cell to run (all by default)
 
     [rays]
     kinds = ["path", "primary", "diffuse", "shadow"]
@@ -55,7 +56,9 @@ PATH_SETS = {"path-primary": "closest", "path-bounce": "closest", "path-shadow":
 QUERIES = {"primary": "closest", "diffuse": "closest", "shadow": "any", **PATH_SETS}
 
 _TOP_KEYS = {"scenes", "builders", "traversals", "threads", "peers", "repeats",
-             "build_repeats", "validate", "rays"}  # fmt: skip
+             "build_repeats", "validate", "rays", "passes"}  # fmt: skip
+#: The kinds of cell a sweep may run.
+PASSES = ("build", "counters", "timing")
 _RAY_KEYS = {"kinds", "width", "height", "seed", "path"}
 _PATH_KEYS = {"spp", "max_depth", "rr_depth"}
 
@@ -102,6 +105,7 @@ class SweepConfig:
     build_repeats: int = 3
     validate: int = 200
     rays: RayConfig = field(default_factory=RayConfig)
+    passes: tuple[str, ...] = PASSES
 
     def as_record(self) -> dict[str, Any]:
         """Return the configuration as JSON-ready values (stored in the results header)."""
@@ -194,6 +198,11 @@ def parse_config(text: str, source: str = "<config>") -> SweepConfig:
             raise _fail(source, text, f"unknown peer {peer!r} (peers: {peer_names()})",
                         f'"{peer}"')  # fmt: skip
     rays = _parse_rays(raw.get("rays", {}), source, text)
+    passes = [str(p) for p in _as_list(raw.get("passes", list(PASSES)), "passes", source, text)]
+    for name in passes:
+        if name not in PASSES:
+            raise _fail(source, text, f"unknown pass {name!r} (passes: {list(PASSES)})",
+                        f'"{name}"')  # fmt: skip
     return SweepConfig(
         scenes=tuple(scenes),
         builders=tuple(builders),
@@ -204,6 +213,7 @@ def parse_config(text: str, source: str = "<config>") -> SweepConfig:
         build_repeats=_positive(raw.get("build_repeats", 3), "build_repeats", source, text),
         validate=_positive(raw.get("validate", 200), "validate", source, text, low=0),
         rays=rays,
+        passes=tuple(p for p in PASSES if p in passes),
     )
 
 

@@ -13,8 +13,8 @@ With ``workers`` or ``scheduler`` the cells run on a ``dask.distributed`` cluste
 ``scheduler``). The mesh and ray sets of a scene are scattered to every worker once
 (``broadcast``); each worker builds the structures it needs and keeps them for
 its next cells. Build and timing cells run one at a time per machine: the client
-keeps at most one of them in flight per host, pinned to one worker of that host,
-so two timings never share a machine; counter cells go to any worker, so they
+keeps at most one of them in flight per host, restricted to that host, so two
+timings never share a machine; counter cells go to any worker, so they
 fill the others. A
 worker that dies has its cell re-run by Dask (up to its ``allowed-failures``), and
 then by the sweep, up to :data:`MAX_ATTEMPTS` times in all. The single writer is
@@ -236,27 +236,28 @@ class _DaskRunner(_Runner):
         from dask.distributed import as_completed
 
         client = self.client
-        hosts = self._hosts()
-        timers = {host: addresses[0] for host, addresses in hosts.items()}
+        hosts = list(self._hosts())
         mesh_f = client.scatter(mesh, broadcast=True)
         sets_f = {name: client.scatter(rs, broadcast=True) for name, rs in raysets.items()}
         attempts: dict[str, int] = {}
         exclusive = deque(cell for cell in cells if cell.exclusive)
-        busy: dict[str, bool] = dict.fromkeys(timers, False)
+        busy: dict[str, bool] = dict.fromkeys(hosts, False)
         futures: dict[Any, tuple[Cell, str | None]] = {}
         done = as_completed()
 
         def submit(cell: Cell, host: str | None) -> None:
             attempts[cell.key] = attempts.get(cell.key, 0) + 1
             rayset = sets_f.get(cell.rayset) if cell.rayset else None
-            where = [timers[host]] if host is not None else None
+            # A host, not a worker address: a worker that dies is replaced under
+            # another address, and the cell must be able to run there.
+            where = [host] if host is not None else None
             future = client.submit(run_cell, cell, config, mesh_f, rayset, workers=where,
                                    pure=False)  # fmt: skip
             futures[future] = (cell, host)
             done.add(future)
 
         def feed_exclusive() -> None:
-            for host in timers:
+            for host in hosts:
                 if not busy[host] and exclusive:
                     busy[host] = True
                     submit(exclusive.popleft(), host)

@@ -1,0 +1,261 @@
+"""The sweep: configuration errors, cells, resuming after interruption, failures, Dask."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rayaccel.study import cells as cells_mod
+from rayaccel.study import sweep as sweep_mod
+from rayaccel.study.cells import enumerate_cells
+from rayaccel.study.config import ConfigError, parse_config
+from rayaccel.study.results import ResultsFile, ResultsFormatError, read_results
+from rayaccel.study.sweep import MAX_ATTEMPTS, sweep
+
+TINY = """\
+scenes = ["cornell-box"]
+builders = ["bvh2.binned_sah", "grid.uniform"]
+traversals = ["bvh2.stack", "grid.dda"]
+threads = [1]
+repeats = 1
+build_repeats = 1
+validate = 50
+
+[rays]
+kinds = ["primary", "shadow", "path"]
+width = 16
+height = 12
+
+[rays.path]
+spp = 1
+max_depth = 1
+"""
+
+
+def _with(line: str) -> str:
+    """TINY with one more top-level line (before its tables)."""
+    return line + "\n" + TINY
+
+
+def _by_key(records):
+    out = {}
+    for record in records:
+        out.setdefault(record["key"], []).append(record)
+    return out
+
+
+@pytest.mark.parametrize(
+    ("text", "line", "match"),
+    [
+        ('scenes = ["cornell-box"]\nbuilders = ["bvh2.binned_sah"]\nfoo = 1\n', 3, "unknown key"),
+        ('scenes = ["cornel-box"]\nbuilders = ["bvh2.binned_sah"]\n', 1, "unknown scene"),
+        ('scenes = ["teapot"]\n\nbuilders = ["bvh2.binned_sha"]\n', 3, "unknown builder"),
+        ('scenes = ["teapot"]\nbuilders = ["bvh2.lbvh+reinsrt"]\n', 2, "unknown build step"),
+        ('scenes = ["teapot"]\nbuilders = ["grid.uniform"]\ntraversals = ["bvh2.stack"]\n', 2,
+         "no listed traversal"),
+        ('scenes = ["teapot"]\nbuilders = ["grid.uniform"]\ntraversals = ["grid.dd"]\n', 3,
+         "unknown traversal"),
+        ('scenes = ["teapot"]\nbuilders = ["grid.uniform"]\nthreads = [0]\n', 3, "threads"),
+        ('scenes = ["teapot"]\nbuilders = ["grid.uniform"]\npeers = ["embre"]\n', 3,
+         "unknown peer"),
+        ('scenes = ["teapot"]\nbuilders = ["grid.uniform"]\n[rays]\nkinds = ["diffus"]\n', 4,
+         "unknown kind"),
+        ('scenes = ["teapot"]\nbuilders = ["grid.uniform"]\npasses = ["time"]\n', 3,
+         "unknown pass"),
+    ],
+)
+def test_config_errors_name_the_line(text, line, match):
+    with pytest.raises(ConfigError, match=match) as caught:
+        parse_config(text, "sweep.toml")
+    assert f"sweep.toml:{line}:" in str(caught.value)
+
+
+def test_config_syntax_error_and_required_keys():
+    with pytest.raises(ConfigError, match=r"sweep\.toml"):
+        parse_config("scenes = [\n", "sweep.toml")
+    with pytest.raises(ConfigError, match="required"):
+        parse_config('scenes = ["teapot"]\n', "sweep.toml")
+
+
+def test_cells_and_their_keys():
+    config = parse_config(TINY)
+    cells = enumerate_cells(config)
+    sets = config.rays.set_names()
+    assert sets == ["primary", "shadow", "path-primary", "path-bounce", "path-shadow"]
+    kinds = [c.kind for c in cells]
+    assert kinds.count("build") == 2
+    assert kinds.count("counters") == kinds.count("timing") == 2 * len(sets)
+    assert len({c.key for c in cells}) == len(cells)
+    assert [c.key for c in enumerate_cells(parse_config(TINY))] == [c.key for c in cells]
+    wider = parse_config(TINY.replace("width = 16", "width = 20"))
+    assert not {c.key for c in enumerate_cells(wider)} & {c.key for c in cells if c.rayset}
+    only = parse_config(_with('passes = ["counters"]'))
+    assert {c.kind for c in enumerate_cells(only)} == {"counters"}
+    assert all(not c.exclusive for c in enumerate_cells(only))
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """One complete tiny sweep, run in this process."""
+    folder = tmp_path_factory.mktemp("sweep")
+    results = folder / "results.jsonl"
+    summary = sweep(parse_config(TINY), results)
+    return results, summary
+
+
+def test_local_sweep_records_every_cell(finished):
+    results, summary = finished
+    header, records = read_results(results)
+    config = parse_config(TINY)
+    expected = {c.key for c in enumerate_cells(config)}
+    assert {r["key"] for r in records} == expected
+    assert summary.ran == len(expected)
+    assert summary.failed == 0
+    assert summary.skipped == 0
+    assert all(r["status"] == "ok" for r in records)
+    assert header["config"]["rays"]["width"] == 16
+    for record in records:
+        if record["kind"] == "counters":
+            assert record["mismatches"] == 0
+            assert record["validated"] > 0 or record["n_rays"] == 0
+            assert record["nodes_per_ray"] is None or record["nodes_per_ray"] >= 0
+        elif record["kind"] == "timing":
+            assert record["mrays_median"] > 0 or record["n_rays"] == 0
+        else:
+            assert record["build_ms_median"] > 0
+            assert record["bytes"] > 0
+    # The recorded path sets were written beside the results, with the scene's digest.
+    manifest = json.loads((results.with_suffix(".rays") / "cornell-box" / "rays.json").read_text())
+    assert manifest["spp"] == 1
+    assert manifest["camera"]["width"] == 16
+    assert summary.overhead < 0.5  # measured, not asserted tightly (shared machines)
+
+
+def test_resume_skips_finished_cells_and_cuts_a_torn_line(finished, tmp_path):
+    results, _ = finished
+    lines = results.read_bytes().splitlines(keepends=True)
+    copy = tmp_path / "results.jsonl"
+    keep = 7
+    copy.write_bytes(b"".join(lines[: 1 + keep]) + lines[1 + keep][:25])  # a torn line
+    summary = sweep(parse_config(TINY), copy, rays_folder=results.with_suffix(".rays"))
+    assert summary.skipped == keep
+    assert summary.ran == len(lines) - 1 - keep
+    _, records = read_results(copy)
+    counts = _by_key(records)
+    assert all(len(v) == 1 for v in counts.values())
+    assert len(counts) == len(lines) - 1
+    assert all(line.endswith(b"\n") for line in copy.read_bytes().splitlines(keepends=True))
+    again = sweep(parse_config(TINY), copy, rays_folder=results.with_suffix(".rays"))
+    assert again.ran == 0
+    assert again.skipped == len(counts)
+
+
+def test_sigkill_mid_sweep_loses_no_finished_cell(finished, tmp_path):
+    """A sweep killed with SIGKILL resumes where it stopped."""
+    results, _ = finished
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY)
+    out = tmp_path / "killed.jsonl"
+    command = [sys.executable, "-m", "rayaccel", "sweep", str(config), "-o", str(out),
+               "--rays", str(results.with_suffix(".rays"))]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            if out.exists() and out.read_bytes().count(b"\n") >= 4:
+                break
+            time.sleep(0.05)
+        process.send_signal(signal.SIGKILL)
+    finally:
+        process.wait(timeout=30)
+    _, before = read_results(out)
+    assert 3 <= len(before) < len(enumerate_cells(parse_config(TINY)))
+    summary = sweep(parse_config(TINY), out, rays_folder=results.with_suffix(".rays"))
+    assert summary.skipped == len(before)
+    _, records = read_results(out)
+    assert all(len(v) == 1 for v in _by_key(records).values())
+    assert {r["key"] for r in records} == {c.key for c in enumerate_cells(parse_config(TINY))}
+
+
+def test_results_of_another_format_are_refused_untouched(tmp_path):
+    path = tmp_path / "old.jsonl"
+    path.write_text('{"record": "header", "format": "rayaccel-sweep/0", "rayaccel": "0.0"}\n')
+    before = path.read_bytes()
+    with pytest.raises(ResultsFormatError, match="rayaccel-sweep/0"):
+        sweep(parse_config(TINY), path)
+    assert path.read_bytes() == before
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text('{"record": "header", "format": "rayaccel-sweep/1"}\nnot json\n{"a": 1}\n')
+    with pytest.raises(ResultsFormatError, match=":2:"):
+        read_results(bad)
+    headless = tmp_path / "headless.jsonl"
+    headless.write_text('{"key": "k"}\n')
+    with pytest.raises(ResultsFormatError, match="no sweep header"):
+        ResultsFile(headless, {})
+
+
+def test_a_failing_cell_is_tried_three_times_then_recorded(finished, tmp_path, monkeypatch):
+    results, _ = finished
+    calls = []
+
+    def broken(cell, config, mesh, rayset):
+        calls.append(cell.key)
+        raise RuntimeError("no <luck> here")
+
+    monkeypatch.setattr(cells_mod, "_counters", broken)
+    config = parse_config(_with('passes = ["counters"]'))
+    out = tmp_path / "failing.jsonl"
+    summary = sweep(config, out, rays_folder=results.with_suffix(".rays"))
+    n = len(enumerate_cells(config))
+    assert summary.failed == n
+    assert len(calls) == MAX_ATTEMPTS * n
+    _, records = read_results(out)
+    assert all(r["status"] == "failed" and r["attempts"] == MAX_ATTEMPTS for r in records)
+    assert "no <luck> here" in records[0]["error"]
+    monkeypatch.undo()
+    again = sweep(config, out, rays_folder=results.with_suffix(".rays"))
+    assert again.ran == 0  # given up for good
+
+
+def _dies_once(cell, config, mesh, rayset):
+    """Kill the worker process the first time the first counters cell runs."""
+    marker = Path(os.environ["RAYACCEL_TEST_MARKER"])
+    if cell.kind == "counters" and not marker.exists():
+        marker.write_text(cell.key)
+        os._exit(1)
+    from rayaccel.study.cells import run_cell
+
+    return run_cell(cell, config, mesh, rayset)
+
+
+def test_dask_local_cluster_runs_every_cell_once_and_survives_a_dead_worker(
+    finished, tmp_path, monkeypatch
+):
+    cloudpickle = pytest.importorskip("cloudpickle")
+    results, _ = finished
+    marker = tmp_path / "died"
+    monkeypatch.setenv("RAYACCEL_TEST_MARKER", str(marker))
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    monkeypatch.setattr(sweep_mod, "run_cell", _dies_once)
+    out = tmp_path / "dask.jsonl"
+    config = parse_config(TINY)
+    summary = sweep(config, out, workers=2, rays_folder=results.with_suffix(".rays"))
+    assert marker.exists()  # a worker died mid-cell
+    _, records = read_results(out)
+    assert summary.failed == 0
+    assert {r["key"] for r in records} == {c.key for c in enumerate_cells(config)}
+    assert all(len(v) == 1 for v in _by_key(records).values())
+    assert all(r["status"] == "ok" for r in records)
+    # No two timed cells of one host overlapped.
+    timed = sorted((r["started"], r["started"] + r["seconds"]) for r in records
+                   if r["kind"] != "counters")  # fmt: skip
+    for (_, end), (start, _) in itertools.pairwise(timed):
+        assert start >= end - 1e-3
