@@ -15,8 +15,8 @@ A cell's ``key`` names it stably across runs: its kind, scene, builder,
 traversal, ray set, threads and the digest of the ray parameters, so a resumed
 sweep skips exactly the finished cells, and changing the rays makes new cells.
 
-Structures are built once per (scene, builder, threads) in the process that runs
-the cell and kept there (:data:`_ACCELS`), as are the peers' structures, so the
+Structures are built once per (scene, builder) in the process that runs the cell
+and kept there (:data:`_ACCELS`), as are the peers' structures, so the
 cells of one structure reuse it.
 """
 
@@ -52,9 +52,12 @@ Record = dict[str, Any]
 #: Cell kinds, in the order a scene's cells are listed.
 KINDS = ("build", "counters", "timing")
 
-#: Structures and peers built in this process: (scene digest, key, threads) -> object.
-_ACCELS: dict[tuple[str, str, int], api.Accel] = {}
+#: Structures and peers built in this process: (scene digest, key) -> object. Builders
+#: give the same structure for every thread count, so one serves every cell.
+_ACCELS: dict[tuple[str, str], api.Accel] = {}
 _PEERS: dict[tuple[str, str], Any] = {}
+#: Oracle answers on a ray set's validation sample, shared by its cells.
+_REFERENCES: dict[tuple[str, str, int, int, int], Any] = {}
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,6 +90,17 @@ class Cell:
         return {"key": self.key, "kind": self.kind, "scene": self.scene,
                 "builder": self.builder, "traversal": self.traversal, "rayset": self.rayset,
                 "threads": self.threads}  # fmt: skip
+
+
+def balance(groups: dict[Any, int], n_bins: int) -> dict[Any, int]:
+    """Assign weighted groups to ``n_bins`` bins, heaviest first to the lightest bin (LPT)."""
+    load = [0] * max(1, n_bins)
+    out = {}
+    for group, weight in sorted(groups.items(), key=lambda item: -item[1]):
+        target = load.index(min(load))
+        out[group] = target
+        load[target] += weight
+    return out
 
 
 def enumerate_cells(config: SweepConfig) -> list[Cell]:
@@ -128,8 +142,11 @@ class _Threads:
 
 
 def structure(mesh: TriangleMesh, builder: str, threads: int) -> api.Accel:
-    """Return this process's structure of ``builder`` over ``mesh`` (built on first use)."""
-    key = (mesh.digest(), builder, threads)
+    """Return this process's structure of ``builder`` over ``mesh``.
+
+    It is built on first use, with ``threads`` threads.
+    """
+    key = (mesh.digest(), builder)
     if key not in _ACCELS:
         with _Threads(threads):
             _ACCELS[key] = api.build(mesh, builder)
@@ -156,7 +173,7 @@ def _build(cell: Cell, config: SweepConfig, mesh: TriangleMesh) -> Record:
             accel = api.build(mesh, cell.builder)
             times.append(time.perf_counter() - start)
     assert accel is not None
-    _ACCELS[(mesh.digest(), cell.builder, cell.threads)] = accel
+    _ACCELS[(mesh.digest(), cell.builder)] = accel
     info = accel.info()
     return {
         "build_ms_median": round(float(np.median(times)) * 1e3, 4),
@@ -168,15 +185,21 @@ def _build(cell: Cell, config: SweepConfig, mesh: TriangleMesh) -> Record:
 
 
 def _counters(cell: Cell, config: SweepConfig, mesh: TriangleMesh, rayset: RaySet) -> Record:
-    accel = structure(mesh, cell.builder, max(config.threads))
+    # Everything on one thread, the structure's build and the oracle included, so
+    # counter cells on several workers of one machine do not compete for its cores.
     with _Threads(1):
+        accel = structure(mesh, cell.builder, 1)
         hits = accel.trace(rayset.rays, query=rayset.query, traversal=cell.traversal, stats=True)
+        ref_key = (mesh.digest(), rayset.kind, rayset.n_rays, config.validate, config.rays.seed)
+        if ref_key not in _REFERENCES:
+            _REFERENCES[ref_key] = reference_hits(mesh, rayset, config.validate,
+                                                  config.rays.seed)  # fmt: skip
+        ref = _REFERENCES[ref_key]
     record = counter_summary(hits.stats)
     record["n_rays"] = rayset.n_rays
     record["hit_rate"] = round(float(np.mean(hits.hit)), 6) if rayset.n_rays else 0.0
     means = record.get("counters_mean", {})
     record["bytes_per_ray"] = means.get("bytes")
-    ref = reference_hits(mesh, rayset, config.validate, config.rays.seed)
     if ref is not None:
         t = None if rayset.query == "any" else hits.t[ref.index]
         record["validated"] = int(ref.index.size)

@@ -14,8 +14,9 @@ With ``workers`` or ``scheduler`` the cells run on a ``dask.distributed`` cluste
 (``broadcast``); each worker builds the structures it needs and keeps them for
 its next cells. Build and timing cells run one at a time per machine: the client
 keeps at most one of them in flight per host, restricted to that host, so two
-timings never share a machine; counter cells go to any worker, so they
-fill the others. A
+timings never share a machine; counter cells fill the workers, those of one
+structure preferably on one worker (structures spread over the workers by their
+cell counts), so each worker builds few structures. A
 worker that dies has its cell re-run by Dask (up to its ``allowed-failures``), and
 then by the sweep, up to :data:`MAX_ATTEMPTS` times in all. The single writer is
 this process.
@@ -33,7 +34,14 @@ from typing import Any
 
 from rayaccel.bench.harness import environment
 from rayaccel.scene import catalog
-from rayaccel.study.cells import Cell, Record, cells_by_scene, enumerate_cells, run_cell
+from rayaccel.study.cells import (
+    Cell,
+    Record,
+    balance,
+    cells_by_scene,
+    enumerate_cells,
+    run_cell,
+)
 from rayaccel.study.config import SweepConfig, load_config
 from rayaccel.study.raysets import scene_raysets
 from rayaccel.study.results import ResultsFile
@@ -236,7 +244,16 @@ class _DaskRunner(_Runner):
         from dask.distributed import as_completed
 
         client = self.client
-        hosts = list(self._hosts())
+        by_host = self._hosts()
+        hosts = list(by_host)
+        # Counter cells of one structure go preferably to one worker, so each worker
+        # builds few structures; the structures are spread by their cell counts.
+        addresses = [a for host in hosts for a in by_host[host]]
+        groups: dict[str, int] = {}
+        for cell in cells:
+            if not cell.exclusive:
+                groups[cell.builder] = groups.get(cell.builder, 0) + 1
+        home = {b: addresses[i] for b, i in balance(groups, len(addresses)).items()}
         mesh_f = client.scatter(mesh, broadcast=True)
         sets_f = {name: client.scatter(rs, broadcast=True) for name, rs in raysets.items()}
         attempts: dict[str, int] = {}
@@ -248,11 +265,16 @@ class _DaskRunner(_Runner):
         def submit(cell: Cell, host: str | None) -> None:
             attempts[cell.key] = attempts.get(cell.key, 0) + 1
             rayset = sets_f.get(cell.rayset) if cell.rayset else None
-            # A host, not a worker address: a worker that dies is replaced under
-            # another address, and the cell must be able to run there.
-            where = [host] if host is not None else None
-            future = client.submit(run_cell, cell, config, mesh_f, rayset, workers=where,
-                                   pure=False)  # fmt: skip
+            # A host, not a worker address, for timed cells: a worker that dies is
+            # replaced under another address, and the cell must be able to run there.
+            # Counter cells prefer their structure's worker but may run on any.
+            if host is not None:
+                future = client.submit(run_cell, cell, config, mesh_f, rayset, workers=[host],
+                                       pure=False)  # fmt: skip
+            else:
+                future = client.submit(run_cell, cell, config, mesh_f, rayset,
+                                       workers=[home[cell.builder]], allow_other_workers=True,
+                                       pure=False)  # fmt: skip
             futures[future] = (cell, host)
             done.add(future)
 
