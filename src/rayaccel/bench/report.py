@@ -24,10 +24,9 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from rayaccel._atomic import write_bytes_atomic
 from rayaccel.errors import InvalidInputError
+from rayaccel.rays.io import json_default
 
 Record = dict[str, Any]
 
@@ -56,22 +55,10 @@ def utc_stamp() -> str:
     return datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
 
 
-def _json_default(value: object) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, os.PathLike):
-        return os.fspath(value)
-    if isinstance(value, (tuple, set, frozenset)):
-        return list(value)
-    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
-
-
 def dumps(record: Record) -> str:
     """Return one record as a single JSON line (non-finite floats become null)."""
     clean = {key: _finite(value) for key, value in record.items()}
-    return json.dumps(clean, default=_json_default, sort_keys=False, allow_nan=False)
+    return json.dumps(clean, default=json_default, sort_keys=False, allow_nan=False)
 
 
 def _finite(value: Any) -> Any:
@@ -79,6 +66,8 @@ def _finite(value: Any) -> Any:
         return None
     if isinstance(value, dict):
         return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
     return value
 
 

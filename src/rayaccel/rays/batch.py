@@ -14,6 +14,7 @@ when statistics were requested.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -114,6 +115,18 @@ class RayBatch:
         nonzero = (self.direction != 0).any(axis=1)
         valid: BoolArray = finite & nonzero & (self.tmin <= self.tmax)
         return valid
+
+    @classmethod
+    def concatenate(cls, batches: Sequence[RayBatch]) -> RayBatch:
+        """Return one batch of the rays of ``batches``, in order (at least one)."""
+        if len(batches) == 1:
+            return batches[0]
+        return cls(
+            np.concatenate([b.origin for b in batches]),
+            np.concatenate([b.direction for b in batches]),
+            np.concatenate([b.tmin for b in batches]),
+            np.concatenate([b.tmax for b in batches]),
+        )
 
     def subset(
         self, index: slice | npt.NDArray[np.bool_] | npt.NDArray[np.integer[Any]]

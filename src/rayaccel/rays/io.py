@@ -43,7 +43,8 @@ RAY_FILE_KEYS = ("origin", "direction", "tmin", "tmax", "metadata")
 _SHAPES = {"origin": 2, "direction": 2, "tmin": 1, "tmax": 1}
 
 
-def _json_default(value: object) -> Any:
+def json_default(value: object) -> Any:
+    """Convert numpy scalars and arrays, paths, tuples and sets for ``json.dumps``."""
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, np.ndarray):
@@ -57,7 +58,7 @@ def _json_default(value: object) -> Any:
 
 def _encode_metadata(metadata: dict[str, object]) -> str:
     try:
-        return json.dumps(metadata, default=_json_default, sort_keys=True, allow_nan=True)
+        return json.dumps(metadata, default=json_default, sort_keys=True, allow_nan=True)
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(f"metadata: expected JSON-serialisable values ({exc})") from exc
 

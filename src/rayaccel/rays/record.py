@@ -20,12 +20,10 @@ import os
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from rayaccel._atomic import write_bytes_atomic
 from rayaccel.errors import InvalidInputError, SceneFileError
 from rayaccel.rays.batch import RayBatch
-from rayaccel.rays.io import load_ray_metadata, load_rays, save_rays
+from rayaccel.rays.io import json_default, load_ray_metadata, load_rays, save_rays
 
 #: File name of a recording's manifest, and its format tag.
 MANIFEST = "rays.json"
@@ -87,7 +85,7 @@ class RayRecorder:
 
     def _write(self, name: str, n: int) -> None:
         batches = self._buffers[name]
-        joined = _concat(batches)
+        joined = RayBatch.concatenate(batches)
         head, rest = joined.subset(slice(0, n)), joined.subset(slice(n, None))
         index = len(self._files.setdefault(name, []))
         path = self.folder / f"{name}-{index:04d}.npz"
@@ -109,7 +107,7 @@ class RayRecorder:
                 for name in self._counts
             },
         }
-        text = json.dumps(manifest, indent=1, sort_keys=True, default=_plain)
+        text = json.dumps(manifest, indent=1, sort_keys=True, default=json_default)
         write_bytes_atomic(self.folder / MANIFEST, text.encode())
         return manifest
 
@@ -121,25 +119,6 @@ class RayRecorder:
         # it is never taken for a complete one.
         if exc_type is None:
             self.close()
-
-
-def _plain(value: object) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
-
-
-def _concat(batches: list[RayBatch]) -> RayBatch:
-    if len(batches) == 1:
-        return batches[0]
-    return RayBatch(
-        np.concatenate([b.origin for b in batches]),
-        np.concatenate([b.direction for b in batches]),
-        np.concatenate([b.tmin for b in batches]),
-        np.concatenate([b.tmax for b in batches]),
-    )
 
 
 def read_manifest(folder: str | os.PathLike[str]) -> dict[str, Any]:
@@ -197,7 +176,7 @@ def load_ray_set(
         batches.append(load_rays(path))
     if not batches:
         raise SceneFileError(f"{folder}: ray set {name!r} has no files")
-    rays = _concat(batches)
+    rays = RayBatch.concatenate(batches)
     if rays.n_rays != sets[name]["n_rays"]:
         raise SceneFileError(
             f"{folder}: ray set {name!r} has {rays.n_rays} rays, the manifest says "

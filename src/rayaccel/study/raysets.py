@@ -28,15 +28,6 @@ from rayaccel.study.config import GENERATED_KINDS, PATH_SETS, RayConfig
 from rayaccel.study.recording import render_scene
 
 
-def _concat(batches: list[RayBatch]) -> RayBatch:
-    return RayBatch(
-        np.concatenate([b.origin for b in batches]),
-        np.concatenate([b.direction for b in batches]),
-        np.concatenate([b.tmin for b in batches]),
-        np.concatenate([b.tmax for b in batches]),
-    )
-
-
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
 
@@ -76,7 +67,7 @@ def path_raysets(
                        key=lambda s: int(s[len(prefix):] or 0))  # fmt: skip
         if not names:
             return RayBatch(np.zeros((0, 3)), np.ones((0, 3)))
-        return _concat([load_ray_set(where, s, digest) for s in names])
+        return RayBatch.concatenate([load_ray_set(where, s, digest) for s in names])
 
     out = {
         "path-primary": merged("primary"),

@@ -12,14 +12,12 @@ format is refused, never overwritten.
 from __future__ import annotations
 
 import json
-import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from rayaccel.bench.report import dumps
 from rayaccel.errors import InvalidInputError
 
 #: Format tag of the header line.
@@ -30,34 +28,6 @@ Record = dict[str, Any]
 
 class ResultsFormatError(InvalidInputError):
     """A results file that this version cannot read or append to."""
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (Path, os.PathLike)):
-        return os.fspath(value)
-    if isinstance(value, (tuple, set, frozenset)):
-        return list(value)
-    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
-
-
-def _finite(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    return value
-
-
-def dumps(record: Record) -> str:
-    """Return ``record`` as one JSON line (non-finite floats become null)."""
-    plain = json.loads(json.dumps(record, default=_plain))
-    return json.dumps(_finite(plain), sort_keys=True, allow_nan=False)
 
 
 def _lines(path: Path) -> Iterator[tuple[int, str, bool]]:
