@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -14,7 +13,6 @@ from pathlib import Path
 import pytest
 
 from rayaccel.study import cells as cells_mod
-from rayaccel.study import sweep as sweep_mod
 from rayaccel.study.cells import enumerate_cells
 from rayaccel.study.config import ConfigError, parse_config
 from rayaccel.study.results import ResultsFile, ResultsFormatError, read_results
@@ -225,32 +223,29 @@ def test_a_failing_cell_is_tried_three_times_then_recorded(finished, tmp_path, m
     assert again.ran == 0  # given up for good
 
 
-def _dies_once(cell, config, mesh, rayset):
-    """Kill the worker process the first time the first counters cell runs."""
-    marker = Path(os.environ["RAYACCEL_TEST_MARKER"])
-    if cell.kind == "counters" and not marker.exists():
-        marker.write_text(cell.key)
-        os._exit(1)
-    from rayaccel.study.cells import run_cell
+def test_dask_local_cluster_runs_every_cell_once_and_survives_a_dead_worker(finished, tmp_path):
+    """A LocalCluster of two workers, one of which dies in its first counters cell.
 
-    return run_cell(cell, config, mesh, rayset)
-
-
-def test_dask_local_cluster_runs_every_cell_once_and_survives_a_dead_worker(
-    finished, tmp_path, monkeypatch
-):
-    cloudpickle = pytest.importorskip("cloudpickle")
+    The sweep runs in a subprocess (``dask_dying_worker.py``), so the Dask scheduler
+    and client threads never live in the test process.
+    """
     results, _ = finished
+    config_path = tmp_path / "tiny.toml"
+    config_path.write_text(TINY)
     marker = tmp_path / "died"
-    monkeypatch.setenv("RAYACCEL_TEST_MARKER", str(marker))
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    monkeypatch.setattr(sweep_mod, "run_cell", _dies_once)
     out = tmp_path / "dask.jsonl"
-    config = parse_config(TINY)
-    summary = sweep(config, out, workers=2, rays_folder=results.with_suffix(".rays"))
+    script = Path(__file__).with_name("dask_dying_worker.py")
+    done = subprocess.run(
+        [sys.executable, str(script), str(config_path), str(out),
+         str(results.with_suffix(".rays")), str(marker)],
+        capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
     assert marker.exists()  # a worker died mid-cell
+    config = parse_config(TINY)
     _, records = read_results(out)
-    assert summary.failed == 0
+    assert summary["failed"] == 0
     assert {r["key"] for r in records} == {c.key for c in enumerate_cells(config)}
     assert all(len(v) == 1 for v in _by_key(records).values())
     assert all(r["status"] == "ok" for r in records)
