@@ -89,15 +89,6 @@ class SweepSummary:
         return (self.wall_seconds - work) / work if work > 0 else 0.0
 
 
-def _version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return version("rayaccel")
-    except Exception:  # not installed: running from a source tree
-        return "unknown"
-
-
 def sweep(
     config: SweepConfig | str | os.PathLike[str],
     results: str | os.PathLike[str],
@@ -132,8 +123,9 @@ def sweep(
     cfg = config if isinstance(config, SweepConfig) else load_config(config)
     results_path = Path(results)
     rays_dir = Path(rays_folder) if rays_folder else results_path.with_suffix(".rays")
-    out = ResultsFile(results_path, {"rayaccel": _version(), "config": cfg.as_record(),
-                                     "environment": environment()})  # fmt: skip
+    env = environment()
+    out = ResultsFile(results_path, {"rayaccel": env["rayaccel_version"],
+                                     "config": cfg.as_record(), "environment": env})  # fmt: skip
     cells = enumerate_cells(cfg)
     finished = out.finished_keys(MAX_ATTEMPTS)
     todo = [cell for cell in cells if cell.key not in finished]
