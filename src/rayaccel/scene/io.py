@@ -1,9 +1,20 @@
 r"""Reading scene files into a :class:`~rayaccel.scene.mesh.TriangleMesh`.
 
-:func:`load_mesh` reads Wavefront OBJ with its own parser and PLY, STL, GLB and
-glTF through trimesh (``trimesh.load(..., force="mesh", process=False)``, so
-multi-object files are concatenated and no vertex is merged or dropped). Any of
-these except glTF may be gzip-compressed (``kitchen.ply.gz``).
+:func:`load_mesh` reads Wavefront OBJ, PLY (:mod:`~rayaccel.scene.ply`) and STL
+(:mod:`~rayaccel.scene.stl`) with its own strict readers, and GLB and glTF through
+trimesh (``trimesh.load(..., force="mesh", process=False)``, so multi-object files
+are concatenated and no vertex is merged or dropped) after checking the GLB
+container and the glTF buffers itself. Any of these except glTF may be
+gzip-compressed (``kitchen.ply.gz``).
+
+Every malformed file is refused with a :class:`~rayaccel.errors.SceneFileError`
+naming the file and the fault (with its line or byte offset where known); the
+contract is tabled in ``docs/reliability.md``. Nothing is allocated beyond a bound:
+a file, or what a ``.gz`` file decompresses to, may hold at most ``max_bytes``
+bytes (default :data:`DEFAULT_MAX_SCENE_BYTES`, 2 GiB, or the environment variable
+``RAYACCEL_MAX_SCENE_BYTES``); ``.gz`` files are decompressed in 1 MiB chunks and
+refused as soon as they exceed it. The readers then allocate in proportion to the
+bytes actually present, never to a count a header declares.
 
 OBJ gets its own reader because trimesh 5.2 silently drops ``v`` lines whose
 fields are separated by tabs and then returns an empty or wrong mesh. The reader
@@ -28,20 +39,31 @@ from __future__ import annotations
 
 import gzip
 import io
+import json
 import os
+import urllib.parse
 import warnings
 import zlib
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from rayaccel.errors import BackendUnavailableError, InvalidInputError, SceneFileError
 from rayaccel.scene.mesh import TriangleMesh
+from rayaccel.scene.ply import parse_ply
+from rayaccel.scene.polygons import F64Array, I64Array, check_polygons, check_vertices
+from rayaccel.scene.polygons import fan_triangulate as _fan_triangulate
+from rayaccel.scene.stl import parse_stl
 
-F64Array = npt.NDArray[np.float64]
-I64Array = npt.NDArray[np.int64]
+#: Environment variable holding the largest scene file, in bytes, :func:`load_mesh` reads.
+MAX_SCENE_BYTES_VAR = "RAYACCEL_MAX_SCENE_BYTES"
+#: Default of that limit: 2 GiB, as a file or decompressed (a binary PLY of about
+#: 80 million triangles, an OBJ of about 20 million).
+DEFAULT_MAX_SCENE_BYTES = 2**31
+_CHUNK = 2**20  # decompression step
 
 #: Formats :func:`load_mesh` reads, by file suffix (a further ``.gz`` is allowed
 #: for every one except ``.gltf``, whose buffers live in separate files).
@@ -106,7 +128,9 @@ def _file_format(path: Path) -> tuple[str, bool]:
     )
 
 
-def load_mesh(path: str | os.PathLike[str], *, name: str | None = None) -> TriangleMesh:
+def load_mesh(
+    path: str | os.PathLike[str], *, name: str | None = None, max_bytes: int | None = None
+) -> TriangleMesh:
     """Load a triangle mesh from an OBJ, PLY, STL, GLB or glTF file.
 
     Parameters
@@ -117,6 +141,10 @@ def load_mesh(path: str | os.PathLike[str], *, name: str | None = None) -> Trian
         followed by ``.gz``.
     name : str, optional
         The mesh's label; defaults to the file name without its suffix.
+    max_bytes : int, optional
+        The most bytes the file may hold, or decompress to for ``.gz``; larger
+        files are refused before (or while) reading. Defaults to the environment
+        variable ``RAYACCEL_MAX_SCENE_BYTES``, else 2 GiB.
 
     Returns
     -------
@@ -127,42 +155,117 @@ def load_mesh(path: str | os.PathLike[str], *, name: str | None = None) -> Trian
     Raises
     ------
     SceneFileError
-        The file is missing, unreadable, of an unsupported format, malformed
-        (the message names the path, and the line for OBJ), or holds no
-        triangles or a non-finite vertex.
+        The file is missing, not a regular file, unreadable, empty, larger than
+        ``max_bytes``, of an unsupported format, malformed (the message names the
+        path and the line or byte offset where known), or holds no triangles, a
+        vertex that is not a finite float32 or a vertex index out of range.
+    InvalidInputError
+        ``max_bytes`` (or ``RAYACCEL_MAX_SCENE_BYTES``) is not a positive integer.
     BackendUnavailableError
         A non-OBJ format was asked for and trimesh is not installed.
     """
     file_path = Path(path)
+    limit = _byte_limit(max_bytes)
     file_format, compressed = _file_format(file_path)
     if not file_path.exists():
         raise SceneFileError(f"{file_path}: no such file")
     if not file_path.is_file():
         raise SceneFileError(f"{file_path}: not a regular file")
     label = scene_stem(file_path) if name is None else name
+    data = _read_bytes(file_path, compressed, limit, max_bytes is None)
+    source = str(file_path)
     if file_format == "obj":
-        vertices, faces = parse_obj(_read_bytes(file_path, compressed), source=str(file_path))
+        vertices, faces = parse_obj(data, source=source)
+    elif file_format == "ply":
+        vertices, faces = parse_ply(data, source=source)
+    elif file_format == "stl":
+        vertices, faces = parse_stl(data, source=source)
     else:
-        vertices, faces = _load_with_trimesh(file_path, file_format, compressed)
+        vertices, faces = _load_gltf(data, file_path, file_format, limit)
     try:
         return TriangleMesh(vertices, faces, name=label)
     except InvalidInputError as exc:
         raise SceneFileError(f"{file_path}: {exc}") from exc
 
 
-def _read_bytes(path: Path, compressed: bool) -> bytes:
+def _byte_limit(max_bytes: int | None) -> int:
+    """Return the size limit from the argument, else the environment, else the default."""
+    if max_bytes is None:
+        text = os.environ.get(MAX_SCENE_BYTES_VAR, "").strip()
+        if not text:
+            return DEFAULT_MAX_SCENE_BYTES
+        try:
+            value = int(text)
+        except ValueError:
+            value = 0
+        if value <= 0:
+            raise InvalidInputError(
+                f"{MAX_SCENE_BYTES_VAR}: expected a positive number of bytes, got {text!r}"
+            )
+        return value
+    if isinstance(max_bytes, bool) or not isinstance(max_bytes, int | np.integer):
+        raise InvalidInputError(
+            f"max_bytes: expected a positive int, got {type(max_bytes).__name__} {max_bytes!r}"
+        )
+    if max_bytes <= 0:
+        raise InvalidInputError(f"max_bytes: expected a positive int, got {max_bytes}")
+    return int(max_bytes)
+
+
+def _too_large(path: Path, limit: int, from_env: bool, what: str) -> SceneFileError:
+    if from_env:
+        setting = f"set by {MAX_SCENE_BYTES_VAR} or by default; load_mesh's max_bytes overrides it"
+    else:
+        setting = "load_mesh's max_bytes argument"
+    return SceneFileError(
+        f"{path}: {what} more than {limit} bytes, the limit on scene files ({setting})"
+    )
+
+
+def _read_bytes(path: Path, compressed: bool, limit: int, from_env: bool = True) -> bytes:
+    """Read a whole file, decompressing ``.gz`` in chunks, refusing more than ``limit`` bytes."""
     try:
         if compressed:
+            buffer = io.BytesIO()
             with gzip.open(path, "rb") as handle:
-                return handle.read()
-        return path.read_bytes()
+                while True:
+                    chunk = handle.read(min(_CHUNK, limit + 1 - buffer.tell()))
+                    if not chunk:
+                        break
+                    buffer.write(chunk)
+                    if buffer.tell() > limit:
+                        raise _too_large(path, limit, from_env, "it decompresses to")
+            data = buffer.getvalue()  # shares the buffer's bytes, no copy
+        else:
+            size = path.stat().st_size
+            if size > limit:
+                raise _too_large(path, limit, from_env, "it holds")
+            with path.open("rb") as handle:
+                # read(n) allocates n bytes up front: ask for what stat reported (+1 to
+                # notice a file that grew), not for the limit.
+                data = handle.read(size + 1)
+            if len(data) > limit:
+                raise _too_large(path, limit, from_env, "it holds")
     except (OSError, EOFError, zlib.error) as exc:
-        raise SceneFileError(f"{path}: cannot read file ({exc})") from exc
+        kind = "gzip data" if compressed else "file"
+        raise SceneFileError(f"{path}: cannot read {kind} ({exc})") from exc
+    if not data:
+        detail = "it decompresses to 0 bytes" if compressed else "0 bytes"
+        raise SceneFileError(f"{path}: the file is empty ({detail})")
+    return data
 
 
-def _load_with_trimesh(path: Path, file_format: str, compressed: bool) -> tuple[F64Array, I64Array]:
+# --------------------------------------------------------------------------- glTF, GLB
+
+
+def _load_gltf(data: bytes, path: Path, file_format: str, limit: int) -> tuple[F64Array, I64Array]:
+    """Check the container and buffers, load with trimesh, and check what it returns."""
+    document = _glb_document(data, path) if file_format == "glb" else _json_document(data, path)
+    _check_buffers(document, path, limit)
+    _check_accessors(document, path)
     try:
         import trimesh
+        from trimesh.resolvers import FilePathResolver
     except ImportError as exc:  # pragma: no cover - trimesh is a core dependency
         raise BackendUnavailableError(
             f"{path}: reading {file_format.upper()} needs trimesh (pip install trimesh)"
@@ -170,25 +273,183 @@ def _load_with_trimesh(path: Path, file_format: str, compressed: bool) -> tuple[
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            if compressed:
-                source = io.BytesIO(_read_bytes(path, compressed=True))
-                loaded = trimesh.load(source, file_type=file_format, force="mesh", process=False)
-            else:
-                loaded = trimesh.load(str(path), file_type=file_format, force="mesh", process=False)
-    except SceneFileError:
-        raise
-    except Exception as exc:  # trimesh raises many unrelated types on bad input
+            loaded = trimesh.load(
+                io.BytesIO(data),
+                file_type=file_format,
+                force="mesh",
+                process=False,
+                resolver=FilePathResolver(str(path.parent)),
+                skip_materials=True,
+            )
+    except (Exception, RecursionError) as exc:  # trimesh raises many unrelated types
         raise SceneFileError(
-            f"{path}: trimesh cannot read it as {file_format.upper()} ({type(exc).__name__}: {exc})"
+            f"{path}: trimesh cannot read it as {file_format.upper()} ({type(exc).__name__}: "
+            f"{str(exc)[:300]})"
         ) from exc
+    return _trimesh_arrays(loaded, path)
+
+
+def _trimesh_arrays(loaded: object, path: Path) -> tuple[F64Array, I64Array]:
+    """Validate what trimesh returned: (V, 3) finite float32 vertices, (F, 3) faces in range."""
     faces = getattr(loaded, "faces", None)
     vertices = getattr(loaded, "vertices", None)
     if faces is None or vertices is None or len(faces) == 0:
         raise SceneFileError(f"{path}: the file holds no triangles (0 faces loaded)")
     face_array = np.asarray(faces)
-    if face_array.ndim != 2 or face_array.shape[1] != 3:
-        raise SceneFileError(f"{path}: expected triangles, got faces of shape {face_array.shape}")
-    return np.asarray(vertices, dtype=np.float64), face_array.astype(np.int64, copy=False)
+    vertex_array = np.asarray(vertices)
+    if face_array.ndim != 2 or face_array.shape[1] != 3 or face_array.dtype.kind not in "iu":
+        raise SceneFileError(
+            f"{path}: expected integer triangles, got faces of shape {face_array.shape} "
+            f"and dtype {face_array.dtype}"
+        )
+    if vertex_array.ndim != 2 or vertex_array.shape[1] != 3 or vertex_array.dtype.kind not in "fiu":
+        raise SceneFileError(
+            f"{path}: expected (V, 3) vertex positions, got shape {vertex_array.shape} "
+            f"and dtype {vertex_array.dtype}"
+        )
+    xyz = check_vertices(vertex_array.astype(np.float64), str(path))
+    index = face_array.astype(np.int64).reshape(-1)
+    check_polygons(np.full(face_array.shape[0], 3, dtype=np.int64), index, xyz.shape[0], str(path))
+    return xyz, index.reshape(-1, 3)
+
+
+def _glb_document(data: bytes, path: Path) -> dict[str, Any]:
+    """Check a GLB container (header, chunk lengths) and return its JSON chunk."""
+    if len(data) < 20 or data[:4] != b"glTF":
+        raise SceneFileError(
+            f"{path}: not a GLB file (it does not start with the magic 'glTF' and a 12-byte "
+            f"header; {len(data)} bytes)"
+        )
+    version = int.from_bytes(data[4:8], "little")
+    length = int.from_bytes(data[8:12], "little")
+    if version != 2:
+        raise SceneFileError(f"{path}: GLB version {version} is not supported (only 2)")
+    if length != len(data):
+        raise SceneFileError(
+            f"{path}: the GLB header declares {length} bytes but the file has {len(data)}"
+        )
+    offset = 12
+    document: dict[str, Any] | None = None
+    while offset < len(data):
+        if offset + 8 > len(data):
+            raise SceneFileError(f"{path}: byte {offset}: GLB chunk header cut short")
+        size = int.from_bytes(data[offset : offset + 4], "little")
+        kind = data[offset + 4 : offset + 8]
+        if offset + 8 + size > len(data):
+            raise SceneFileError(
+                f"{path}: byte {offset}: GLB chunk declares {size} bytes but only "
+                f"{len(data) - offset - 8} remain"
+            )
+        if document is None:
+            if kind != b"JSON":
+                raise SceneFileError(f"{path}: byte {offset}: the first GLB chunk is not JSON")
+            document = _json_document(data[offset + 8 : offset + 8 + size], path)
+        offset += 8 + size
+    if document is None:
+        raise SceneFileError(f"{path}: the GLB file has no JSON chunk")
+    return document
+
+
+def _json_document(data: bytes, path: Path) -> dict[str, Any]:
+    """Parse glTF JSON, which must be an object."""
+    try:
+        document = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise SceneFileError(f"{path}: glTF JSON is not UTF-8 (byte {exc.start})") from None
+    except json.JSONDecodeError as exc:
+        raise SceneFileError(
+            f"{path}: invalid JSON at line {exc.lineno} column {exc.colno} ({exc.msg})"
+        ) from None
+    except (ValueError, RecursionError) as exc:
+        raise SceneFileError(f"{path}: invalid JSON ({type(exc).__name__}: {exc})") from None
+    if not isinstance(document, dict):
+        raise SceneFileError(
+            f"{path}: expected a JSON object at the top level, got {type(document).__name__}"
+        )
+    return document
+
+
+def _check_buffers(document: dict[str, Any], path: Path, limit: int) -> None:
+    """Refuse external buffers that are missing, outside the file's folder or too large."""
+    buffers = document.get("buffers", [])
+    if not isinstance(buffers, list):
+        raise SceneFileError(f"{path}: 'buffers' must be a JSON list")
+    folder = path.parent.resolve()
+    total = 0
+    for number, buffer in enumerate(buffers):
+        if not isinstance(buffer, dict):
+            raise SceneFileError(f"{path}: buffer {number} is not a JSON object")
+        uri = buffer.get("uri")
+        if uri is None or (isinstance(uri, str) and uri.startswith("data:")):
+            continue
+        if not isinstance(uri, str):
+            raise SceneFileError(f"{path}: buffer {number}'s uri is not a string")
+        target = (folder / urllib.parse.unquote(uri)).resolve()
+        if not target.is_relative_to(folder):
+            raise SceneFileError(
+                f"{path}: buffer {number} refers to {uri!r}, outside the file's folder"
+            )
+        if not target.is_file():
+            raise SceneFileError(f"{path}: buffer {number} refers to {uri!r}, not a readable file")
+        total += target.stat().st_size
+        if total > limit:
+            raise SceneFileError(
+                f"{path}: its buffers hold more than {limit} bytes, the limit on scene files "
+                f"(max_bytes, {MAX_SCENE_BYTES_VAR})"
+            )
+
+
+_COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
+_TYPE_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
+def _check_accessors(document: dict[str, Any], path: Path) -> None:
+    """Refuse accessors that reach past their buffer view, and views past their buffer."""
+
+    def items(key: str) -> list[Any]:
+        value = document.get(key, [])
+        if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+            raise SceneFileError(f"{path}: {key!r} must be a JSON list of objects")
+        return value
+
+    def number(owner: str, entry: dict[str, Any], key: str, default: int | None = None) -> int:
+        value = entry.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise SceneFileError(f"{path}: {owner}: {key!r} must be a non-negative integer")
+        return value
+
+    buffers, views = items("buffers"), items("bufferViews")
+    for i, view in enumerate(views):
+        owner = f"bufferView {i}"
+        j = number(owner, view, "buffer")
+        end = number(owner, view, "byteOffset", 0) + number(owner, view, "byteLength")
+        if j >= len(buffers):
+            raise SceneFileError(f"{path}: {owner} refers to buffer {j} of {len(buffers)}")
+        if end > number(f"buffer {j}", buffers[j], "byteLength"):
+            raise SceneFileError(
+                f"{path}: {owner} ends at byte {end}, past the end of buffer {j} "
+                f"({buffers[j]['byteLength']} bytes)"
+            )
+    for i, accessor in enumerate(items("accessors")):
+        owner = f"accessor {i}"
+        count = number(owner, accessor, "count")
+        if "bufferView" not in accessor or count == 0:
+            continue
+        j = number(owner, accessor, "bufferView")
+        if j >= len(views):
+            raise SceneFileError(f"{path}: {owner} refers to bufferView {j} of {len(views)}")
+        component = _COMPONENT_BYTES.get(accessor.get("componentType"))
+        width = _TYPE_COMPONENTS.get(accessor.get("type"))
+        if component is None or width is None:
+            raise SceneFileError(f"{path}: {owner} has an unknown componentType or type")
+        size = component * width
+        stride = number(f"bufferView {j}", views[j], "byteStride", 0) or size
+        need = number(owner, accessor, "byteOffset", 0) + stride * (count - 1) + size
+        if need > views[j]["byteLength"]:
+            raise SceneFileError(
+                f"{path}: {owner} declares {count} elements ({need} bytes) but its bufferView "
+                f"{j} holds {views[j]['byteLength']} bytes"
+            )
 
 
 # --------------------------------------------------------------------------- OBJ
@@ -473,16 +734,12 @@ def _tokens_are_uniform(body: str, n_lines: int, n_tokens: int, n_slashes: int) 
     return bool((per_token == n_slashes).all())
 
 
-def _fan_triangulate(counts: I64Array, index: I64Array) -> I64Array:
-    """Triangulate polygons given as flat corner indices: ``(0, k, k + 1)`` fans."""
-    if (counts == 3).all():
-        return index.reshape(-1, 3)
-    n_tris = counts - 2
-    first = np.cumsum(counts) - counts
-    owner = np.repeat(np.arange(counts.shape[0]), n_tris)
-    k = np.arange(int(n_tris.sum())) - np.repeat(np.cumsum(n_tris) - n_tris, n_tris)
-    base = first[owner]
-    return np.stack([index[base], index[base + k + 1], index[base + k + 2]], axis=1)
-
-
-__all__ = ["MESH_SUFFIXES", "SUPPORTED_SUFFIXES", "load_mesh", "parse_obj", "scene_stem"]
+__all__ = [
+    "DEFAULT_MAX_SCENE_BYTES",
+    "MAX_SCENE_BYTES_VAR",
+    "MESH_SUFFIXES",
+    "SUPPORTED_SUFFIXES",
+    "load_mesh",
+    "parse_obj",
+    "scene_stem",
+]
