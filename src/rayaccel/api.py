@@ -12,16 +12,20 @@ registered traversal by key; extra keywords are that traversal's options::
 
 from __future__ import annotations
 
+import os
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rayaccel import config, registry
+from rayaccel import config, persist, registry
+from rayaccel import refit as refitting
+from rayaccel.bvh import geometry
 from rayaccel.counters import counters_to_dict, empty_counters
-from rayaccel.dtypes import BoolArray
-from rayaccel.errors import InvalidInputError
+from rayaccel.dtypes import BoolArray, FloatArray, IntArray
+from rayaccel.errors import AccelFileError, InvalidInputError, UnknownVariantError
 from rayaccel.queries import QUERY_KINDS
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
@@ -69,6 +73,12 @@ class Accel:
         self.structure_name = registry.get_chain(key)[0].structure
         self._cache: dict[str, Any] = {}
         self._lock = threading.Lock()
+        #: Options of each build step by step name (set by :func:`build`), for rebuilds.
+        self.step_options: dict[str, Any] = {}
+        #: SAH cost at build time; computed on first need (:meth:`refit`, :meth:`save`).
+        self.build_sah: float | None = None
+        #: The report of the last :meth:`refit` (also ``info()["refit"]``).
+        self.last_refit: dict[str, Any] | None = None
 
     def __repr__(self) -> str:
         return f"Accel({self.key!r}, {self.mesh!r})"
@@ -124,9 +134,10 @@ class Accel:
                 )
             return empty
         with self._lock:
-            cache = self._cache
+            # One consistent snapshot: refit() swaps the three together.
+            cache, structure, mesh = self._cache, self.structure, self.mesh
         return variant.func(  # type: ignore[no-any-return]
-            self.structure, self.mesh, rays, query=query, stats=stats, options=opts, cache=cache
+            structure, mesh, rays, query=query, stats=stats, options=opts, cache=cache
         )
 
     def intersect(
@@ -203,8 +214,106 @@ class Accel:
         _, start = registry.pausable(self.structure_name)
         rays = RayBatch(origins, directions, tmin, tmax)
         with self._lock:
-            cache = self._cache
-        return start(self.structure, self.mesh, rays, cache=cache)
+            cache, structure, mesh = self._cache, self.structure, self.mesh
+        return start(structure, mesh, rays, cache=cache)
+
+    # -- Open3D's geometry queries (rayaccel.bvh.geometry) ---------------------------------------
+
+    def _geometry_snapshot(self) -> tuple[Any, TriangleMesh, dict[str, Any]]:
+        with self._lock:
+            return self.structure, self.mesh, self._cache
+
+    def count_intersections(
+        self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf
+    ) -> IntArray:
+        """Return ``(n,)`` int32: how many triangles each ray crosses in ``[tmin, tmax]``.
+
+        Every triangle is counted once per ray, also where the structure references
+        it from several leaves (spatial splits, pre-splitting). Open3D's
+        ``RaycastingScene.count_intersections``; arguments as :meth:`intersect`. A
+        ``bvh2`` is walked directly; other structures get a companion BVH on first use
+        (:mod:`rayaccel.bvh.geometry`).
+        """
+        rays = RayBatch(origins, directions, tmin, tmax)
+        structure, mesh, cache = self._geometry_snapshot()
+        return geometry.count_intersections(structure, mesh, rays, cache)
+
+    def list_intersections(
+        self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf
+    ) -> geometry.IntersectionList:
+        """Return every hit of every ray in ``[tmin, tmax]``, once, by ray, ``t`` and primitive.
+
+        Open3D's ``RaycastingScene.list_intersections``: CSR arrays ``ray_splits``
+        (ray ``r``'s hits are ``ray_splits[r]:ray_splits[r + 1]``), ``ray_ids``,
+        ``t_hit``, ``primitive_ids``, ``primitive_uvs``
+        (:class:`rayaccel.bvh.geometry.IntersectionList`, also indexable by those
+        names). Arguments as :meth:`intersect`.
+        """
+        rays = RayBatch(origins, directions, tmin, tmax)
+        structure, mesh, cache = self._geometry_snapshot()
+        return geometry.list_intersections(structure, mesh, rays, cache)
+
+    def compute_closest_points(self, points: Any) -> geometry.ClosestPoints:
+        """Return the nearest point of the mesh to each query point.
+
+        Open3D's ``RaycastingScene.compute_closest_points``: ``points``,
+        ``primitive_ids``, ``primitive_uvs``, ``primitive_normals``, plus ``distance``
+        (:class:`rayaccel.bvh.geometry.ClosestPoints`), by a BVH nearest-point walk
+        (:mod:`rayaccel.bvh.traverse.closest_point`).
+
+        Parameters
+        ----------
+        points : (n, 3) array_like of float
+            Finite query points (computed in float64).
+
+        Raises
+        ------
+        InvalidInputError
+            ``points`` is not ``(n, 3)`` real numbers or holds a NaN or inf.
+        """
+        query = geometry.coerce_points(points)
+        structure, mesh, cache = self._geometry_snapshot()
+        return geometry.closest(structure, mesh, query, cache)
+
+    def compute_distance(self, points: Any) -> FloatArray:
+        """Return ``(n,)`` float32 distances from each point to the mesh (unsigned)."""
+        query = geometry.coerce_points(points)
+        structure, mesh, cache = self._geometry_snapshot()
+        return geometry.distance(structure, mesh, query, cache)
+
+    def compute_signed_distance(
+        self, points: Any, *, method: str = "winding", n_rays: int = 3
+    ) -> FloatArray:
+        """Return ``(n,)`` float32 distances to the mesh, negative inside.
+
+        Parameters
+        ----------
+        points : (n, 3) array_like of float
+            Finite query points.
+        method : {"winding", "parity"}
+            Inside test: generalised winding number above 1/2 (Jacobson et al. 2013,
+            fast evaluation of Barill et al. 2018; robust on open and imperfect
+            meshes, needs outward orientation) or a majority vote of ray parities
+            over ``n_rays`` fixed directions (Open3D's approach; ignores orientation).
+            Behaviour on open meshes: :mod:`rayaccel.bvh.geometry`.
+        n_rays : int
+            Odd number of parity rays.
+        """
+        query = geometry.coerce_points(points)
+        structure, mesh, cache = self._geometry_snapshot()
+        return geometry.signed_distance(structure, mesh, query, cache, method=method, n_rays=n_rays)
+
+    def compute_occupancy(
+        self, points: Any, *, method: str = "winding", n_rays: int = 3
+    ) -> FloatArray:
+        """Return ``(n,)`` float32: 1 for points inside the mesh, 0 outside.
+
+        Open3D's ``RaycastingScene.compute_occupancy``; ``method`` and ``n_rays`` as in
+        :meth:`compute_signed_distance`.
+        """
+        query = geometry.coerce_points(points)
+        structure, mesh, cache = self._geometry_snapshot()
+        return geometry.occupancy(structure, mesh, query, cache, method=method, n_rays=n_rays)
 
     # -- structure -----------------------------------------------------------------------------
 
@@ -277,6 +386,8 @@ class Accel:
             )
             info.update(quality)
         info["bytes"] = int(s.nbytes()) + derived_bytes
+        if self.last_refit is not None:
+            info["refit"] = dict(self.last_refit)
         info["options"] = {
             k: getattr(self.options, k) for k in getattr(self.options, "__slots__", ())
         }
@@ -285,6 +396,115 @@ class Accel:
     def validate(self) -> None:
         """Check every invariant of the structure; raise ``StructureInvariantError`` if broken."""
         self.structure.validate(self.mesh.triangles())
+
+    # -- deformation, files and copies ---------------------------------------------------------
+
+    def refit(self, new_vertices: Any, *, rebuild_if_worse: float | None = None) -> dict[str, Any]:
+        """Move the mesh's vertices and update the structure (same faces, same topology).
+
+        A BVH keeps its tree and has every box recomputed bottom-up in parallel; a
+        kd-tree or a grid cannot be refitted (its planes and cells are positions in
+        space) and is rebuilt with the same builder and options. Every derived
+        traversal layout is dropped and derived again on its next use. See
+        :mod:`rayaccel.refit`.
+
+        Parameters
+        ----------
+        new_vertices : (V, 3) array_like of float
+            The new positions, one per vertex of ``self.mesh`` (coerced to float32;
+            every one finite). The accel then holds a new :class:`TriangleMesh` with these
+            vertices and the same faces.
+        rebuild_if_worse : float, optional
+            Rebuild from scratch (same builder, steps and options) when the refitted
+            tree's SAH cost exceeds this many times the SAH cost at build time.
+
+        Returns
+        -------
+        dict
+            ``method`` (``"refit"`` or ``"rebuild"``) and ``reason``; ``sah_build``,
+            ``sah_before``, ``sah_refit`` (the refitted tree's cost, before any rebuild)
+            and ``sah_after`` (the cost of the structure now held); ``ratio`` =
+            ``sah_refit / sah_build`` (the SAH degradation); ``refit_ms``,
+            ``rebuild_ms``, ``ms``; ``dropped`` (derived layouts dropped). SAH values
+            are None for grids. The same dict is ``info()["refit"]``.
+
+        Raises
+        ------
+        InvalidInputError
+            ``new_vertices`` has another shape or vertex count, or a NaN or inf;
+            ``rebuild_if_worse`` is not a positive number.
+        """
+
+        def rebuild(mesh: TriangleMesh) -> tuple[Any, float, dict[str, float]]:
+            fresh = build(mesh, self.key, **self.build_options())
+            return fresh.structure, fresh.build_ms, fresh.step_ms
+
+        outcome = refitting.refit_structure(
+            self.structure,
+            self.mesh,
+            new_vertices,
+            build_sah=self.build_sah,
+            rebuild_if_worse=rebuild_if_worse,
+            rebuild=rebuild,
+            structure_name=self.structure_name,
+        )
+        with self._lock:
+            outcome.report["dropped"] = sorted(self._cache)
+            self.mesh = outcome.mesh
+            self.structure = outcome.structure
+            self.build_sah = outcome.build_sah
+            self._cache = {}
+            if outcome.rebuilt is not None:
+                self.build_ms = outcome.rebuilt[0]
+                self.step_ms = dict(outcome.rebuilt[1])
+            self.last_refit = outcome.report
+        return outcome.report
+
+    def build_options(self) -> dict[str, Any]:
+        """Return the keywords that make :func:`build` rebuild this accel (steps as dicts)."""
+        out = persist.options_dict(self.options)
+        out.update({name: persist.options_dict(o) for name, o in self.step_options.items()})
+        return out
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write this accel (mesh, structure, builder and options) to ``path``; return it.
+
+        One ``.npz`` archive with a JSON header, written atomically and loaded back with
+        :func:`load_accel` (format and checks: :mod:`rayaccel.persist`). Derived
+        layouts are not saved; they are derived again on first use.
+
+        Raises
+        ------
+        OSError
+            The file cannot be written (an existing file is then left unchanged).
+        """
+        if self.build_sah is None:
+            self.build_sah = refitting.sah_cost(self.structure)
+        return persist.save(
+            path,
+            key=self.key,
+            structure_name=self.structure_name,
+            mesh=self.mesh,
+            structure=self.structure,
+            options=self.options,
+            step_options=self.step_options,
+            build_ms=self.build_ms,
+            step_ms=self.step_ms,
+            build_sah=self.build_sah,
+        )
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickle everything but the lock and the derived layouts (derived again on use)."""
+        state = self.__dict__.copy()
+        state.pop("_lock", None)
+        state["_cache"] = {}
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Restore a pickled (or copied) accel with a lock and an empty layout cache of its own."""
+        self.__dict__.update(state)
+        self._cache = {}
+        self._lock = threading.Lock()
 
 
 def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
@@ -323,6 +543,49 @@ def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
             "(use rayaccel.TriangleMesh(vertices, faces) or rayaccel.load_mesh(path))"
         )
     key = key or registry.DEFAULT_BUILD_KEY
+    variant, opts, before, after = _resolve_chain(key, options)
+    start = time.perf_counter()
+    step_ms: dict[str, float] = {}
+    with config.parallel_section():
+        refs = None
+        for step, step_opt in before:
+            step_start = time.perf_counter()
+            refs = step.func(mesh, step_opt)
+            step_ms[step.key] = (time.perf_counter() - step_start) * 1e3
+        build_start = time.perf_counter()
+        if refs is None:
+            structure = variant.func(mesh, opts)
+        else:
+            structure = variant.func(mesh, opts, refs=refs)
+        step_ms[variant.key] = (time.perf_counter() - build_start) * 1e3
+        for step, step_opt in after:
+            step_start = time.perf_counter()
+            structure = step.func(structure, mesh, step_opt)
+            step_ms[step.key] = (time.perf_counter() - step_start) * 1e3
+    build_ms = (time.perf_counter() - start) * 1e3
+    accel = Accel(key, mesh, structure, opts, build_ms, step_ms)
+    accel.step_options = {s.key.split("+", 1)[1]: o for s, o in (*before, *after)}
+    if config.DEBUG:
+        accel.validate()
+    return accel
+
+
+def check_build_options(key: str, options: dict[str, Any]) -> None:
+    """Check a builder key (with its steps) and its options without building anything.
+
+    Raises
+    ------
+    UnknownVariantError, InvalidInputError
+        As :func:`build` would.
+    """
+    _resolve_chain(key, dict(options))
+
+
+def _resolve_chain(key: str, options: dict[str, Any]) -> tuple[Any, Any, list[Any], list[Any]]:
+    """Return the builder, its options, and the pre- and post-build steps with theirs.
+
+    Step options are popped from ``options`` (a dict named after each step).
+    """
     variant, steps = registry.get_chain(key)
     step_names = [step.key.split("+", 1)[1] for step in steps]
     step_values = {name: options.pop(name) for name in set(step_names) if name in options}
@@ -344,26 +607,41 @@ def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
             f"{variant.key} cannot build over the references made by {before[0][0].key} "
             "(it takes no refs)"
         )
-    start = time.perf_counter()
-    step_ms: dict[str, float] = {}
-    with config.parallel_section():
-        refs = None
-        for step, step_opt in before:
-            step_start = time.perf_counter()
-            refs = step.func(mesh, step_opt)
-            step_ms[step.key] = (time.perf_counter() - step_start) * 1e3
-        build_start = time.perf_counter()
-        if refs is None:
-            structure = variant.func(mesh, opts)
-        else:
-            structure = variant.func(mesh, opts, refs=refs)
-        step_ms[variant.key] = (time.perf_counter() - build_start) * 1e3
-        for step, step_opt in after:
-            step_start = time.perf_counter()
-            structure = step.func(structure, mesh, step_opt)
-            step_ms[step.key] = (time.perf_counter() - step_start) * 1e3
-    build_ms = (time.perf_counter() - start) * 1e3
-    accel = Accel(key, mesh, structure, opts, build_ms, step_ms)
-    if config.DEBUG:
-        accel.validate()
+    return variant, opts, before, after
+
+
+def load_accel(path: str | os.PathLike[str]) -> Accel:
+    """Load an accel written by :meth:`Accel.save`, checking and validating it.
+
+    The file is read without unpickling; its format version, content hash, arrays and
+    structure are checked and the structure validated against the mesh
+    (:func:`rayaccel.persist.load`); the builder key and options must be known to this
+    rayaccel.
+
+    Raises
+    ------
+    AccelFileError
+        Missing, truncated, tampered, foreign or other-version file, or a builder or
+        options this rayaccel does not know.
+    """
+    saved = persist.load(path)
+    try:
+        variant, steps = registry.get_chain(saved.key)
+        if variant.structure != saved.structure_name:
+            raise InvalidInputError(
+                f"{saved.key!r} builds a {variant.structure!r}, the file holds a "
+                f"{saved.structure_name!r}"
+            )
+        options = variant.make_options(saved.options)
+        step_options = {}
+        for step in steps:
+            name = step.key.split("+", 1)[1]
+            step_options[name] = step.make_options(saved.step_options.get(name))
+    except (UnknownVariantError, InvalidInputError) as exc:
+        raise AccelFileError(
+            f"{path}: its builder {saved.key!r} or options do not match this rayaccel: {exc}"
+        ) from exc
+    accel = Accel(saved.key, saved.mesh, saved.structure, options, saved.build_ms, saved.step_ms)
+    accel.step_options = step_options
+    accel.build_sah = saved.build_sah
     return accel

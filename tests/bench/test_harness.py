@@ -179,7 +179,7 @@ def test_parsers():
         harness.BenchConfig(scenes=["cornell-box"], threads=[10_000])
 
 
-@pytest.mark.parametrize("name", ["embree", "open3d", "trimesh"])
+@pytest.mark.parametrize("name", list(peers.PEERS))
 def test_peer_matches_the_oracle(name):
     peer = peers.get_peer(name)
     if not peer.available():

@@ -68,6 +68,11 @@ def _by_key(records):
          "unknown kind"),
         ('scenes = ["teapot"]\nbuilders = ["grid.uniform"]\npasses = ["time"]\n', 3,
          "unknown pass"),
+        ('scenes = ["teapot"]\nbuilders = [\n  {key = "bvh2.lbvh", max_leaf = 2},\n]\n', 3,
+         "unknown option 'max_leaf'"),
+        ('scenes = ["teapot"]\nbuilders = ["bvh2.lbvh"]\n'
+         'traversals = [{key = "bvh2.restart_trail", short = 3}]\n', 3, "unknown option"),
+        ('scenes = ["teapot"]\nbuilders = [{max_leaf_size = 2}]\n', 2, "table with a 'key'"),
     ],
 )
 def test_config_errors_name_the_line(text, line, match):
@@ -254,3 +259,38 @@ def test_dask_local_cluster_runs_every_cell_once_and_survives_a_dead_worker(fini
                    if r["kind"] != "counters")  # fmt: skip
     for (_, end), (start, _) in itertools.pairwise(timed):
         assert start >= end - 1e-3
+
+
+def test_builders_and_traversals_with_options(tmp_path):
+    """Options reach the builder and the traversal; each variant is its own labelled cell."""
+    text = """\
+scenes = ["cornell-box"]
+builders = [{key = "bvh2.binned_sah", max_leaf_size = 1}]
+traversals = ["bvh2.restart_trail", {key = "bvh2.restart_trail", short_stack = 3}]
+threads = [1]
+build_repeats = 1
+validate = 50
+passes = ["build", "counters"]
+
+[rays]
+kinds = ["primary"]
+width = 16
+height = 12
+"""
+    config = parse_config(text)
+    builder = "bvh2.binned_sah[max_leaf_size=1]"
+    assert config.builders == (builder,)
+    assert config.traversals[builder] == (
+        "bvh2.restart_trail", "bvh2.restart_trail[short_stack=3]",
+    )
+    assert config.variant(builder) == ("bvh2.binned_sah", {"max_leaf_size": 1})
+    sweep(config, tmp_path / "results.jsonl")
+    _, records = read_results(tmp_path / "results.jsonl")
+    assert all(r["status"] == "ok" for r in records)
+    (build,) = [r for r in records if r["kind"] == "build"]
+    assert build["builder"] == builder
+    assert build["info"]["mean_leaf_size"] == 1.0
+    nodes = {r["traversal"]: r["nodes_per_ray"] for r in records if r["kind"] == "counters"}
+    assert all(r["mismatches"] == 0 for r in records if r["kind"] == "counters")
+    # A 3-entry short stack saves restarts from the root: fewer nodes per ray
+    assert nodes["bvh2.restart_trail[short_stack=3]"] < nodes["bvh2.restart_trail"]

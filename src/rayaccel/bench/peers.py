@@ -1,4 +1,4 @@
-"""Adapters that run other ray tracers on the same rays: Embree (embreex), Open3D, trimesh.
+"""Adapters that run other ray tracers on the same rays: Embree, Open3D, Mitsuba 3, Warp, trimesh.
 
 A peer is measured exactly like a rayaccel system, on the same
 :class:`~rayaccel.rays.batch.RayBatch` objects, and appears as an extra row of
@@ -25,15 +25,23 @@ the benchmark table. Every adapter has the same small vocabulary (trimesh's
   for all rays, so a batch whose rays differ in ``tmax`` is refused. Open3D
   builds lazily on the first query, so build time covers ``add_triangles`` and
   a one-ray cast. On Debian it needs ``libusb-1.0-0``.
+* ``mitsuba``: Mitsuba 3's ``llvm_ad_rgb`` variant: ``ray_intersect_preliminary``
+  and ``ray_test`` over the whole batch as one Dr.Jit wavefront (Embree's BVH
+  inside, traced by Dr.Jit's thread pool, whose size ``set_threads`` sets for
+  the whole process). ``Ray3f`` has no ``tmin``. The thesis compared against
+  Mitsuba's packets; this is the route its Python users take.
+* ``warp``: NVIDIA Warp's ``mesh_query_ray`` / ``mesh_query_ray_anyhit`` over
+  ``wp.Mesh`` (Warp's own BVH) in a Warp kernel on the CPU device, which Warp
+  runs on one thread. Kernels compile on first use and are cached by Warp.
 * ``trimesh``: ``trimesh.ray.ray_triangle.RayMeshIntersector``, pure numpy over
   an r-tree (needs the ``rtree`` package). It is orders of magnitude slower, so
   it only runs on the first :attr:`TrimeshPeer.max_rays` rays of a set, with at
   most :attr:`TrimeshPeer.max_repeats` timed passes, and on meshes up to
   :attr:`TrimeshPeer.max_triangles` triangles; the table says so.
 
-The rays' ``tmin`` must be 0 for ``embree`` and equal for all rays for ``open3d``
-(every standard ray set satisfies both: secondary rays offset their origins
-instead of using ``tmin``).
+The rays' ``tmin`` must be 0 for ``embree``, ``mitsuba`` and ``warp``, and equal
+for all rays for ``open3d`` (every standard ray set satisfies both: secondary
+rays offset their origins instead of using ``tmin``).
 """
 
 from __future__ import annotations
@@ -352,10 +360,170 @@ class TrimeshPeer(Peer):
         return blocked
 
 
+class MitsubaPeer(Peer):
+    """Mitsuba 3's ``llvm_ad_rgb`` variant: wavefront queries through Dr.Jit (Embree inside)."""
+
+    name = "mitsuba"
+    label = "mitsuba 3 (llvm_ad_rgb)"
+    package = "mitsuba,drjit"
+    extra = "pip install mitsuba (the llvm variants need libLLVM, e.g. Debian's libllvm15)"
+    threads_note = "mitsuba: Dr.Jit's thread pool set to {n} threads"
+    #: The variant: the CPU one whose queries run vectorised over the whole batch.
+    variant = "llvm_ad_rgb"
+
+    def unavailable_reason(self) -> str | None:
+        """Also check that the LLVM variant loads (it needs a system libLLVM)."""
+        reason = super().unavailable_reason()
+        if reason is not None:
+            return reason
+        import mitsuba
+
+        try:
+            mitsuba.set_variant(self.variant)
+        except Exception as exc:  # no libLLVM: ImportError or a Dr.Jit RuntimeError
+            return f"{self.name}: variant {self.variant} does not load ({exc}); {self.extra}"
+        return None
+
+    def set_threads(self, n: int) -> None:
+        """Size Dr.Jit's thread pool (process-wide) to ``n`` threads; 0 leaves it as it is."""
+        super().set_threads(n)
+        if n > 0 and self.available():
+            import drjit
+
+            drjit.set_thread_count(int(n))
+
+    def _build(self, mesh: TriangleMesh) -> None:
+        import drjit
+        import mitsuba
+
+        mitsuba.set_variant(self.variant)
+        self._mi, self._dr = mitsuba, drjit
+        shape = mitsuba.Mesh(
+            "rayaccel",
+            vertex_count=mesh.n_vertices,
+            face_count=mesh.n_triangles,
+            has_vertex_normals=False,
+            has_vertex_texcoords=False,
+        )
+        params = mitsuba.traverse(shape)
+        params["vertex_positions"] = mitsuba.Float(np.ravel(mesh.vertices).astype(REAL))
+        params["faces"] = mitsuba.UInt32(np.ravel(mesh.faces).astype(np.uint32))
+        params.update()
+        self._scene = mitsuba.load_dict({"type": "scene", "mesh": shape})
+        # One query compiles the kernels that later queries reuse from Dr.Jit's cache
+        self.intersect(RayBatch(np.zeros((1, 3)), np.ones((1, 3))))
+
+    def prepare(self, rays: RayBatch) -> Any:
+        """Return a ``mitsuba.Ray3f`` over the batch (``tmin`` must be 0: Ray3f has none)."""
+        _require_zero_tmin(self.name, rays)
+        mi = self._mi
+        o, d = rays.origin, rays.direction
+        ray = mi.Ray3f(
+            o=mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), d=mi.Vector3f(d[:, 0], d[:, 1], d[:, 2])
+        )
+        ray.maxt = mi.Float(np.ascontiguousarray(rays.tmax, dtype=REAL))
+        self._dr.eval(ray)
+        return ray
+
+    def intersect(self, rays: Any) -> tuple[FloatArray, IntArray]:
+        """Closest hits through ``ray_intersect_preliminary``, see :meth:`Peer.intersect`."""
+        found = self._scene.ray_intersect_preliminary(self._prepared(rays), coherent=False)
+        self._dr.eval(found.t, found.prim_index)
+        self._dr.sync_thread()
+        t = np.array(found.t, dtype=REAL)
+        hit = np.isfinite(t)
+        prim = np.where(hit, np.array(found.prim_index).astype(np.int64), -1).astype(INDEX)
+        return np.where(hit, t, np.inf).astype(REAL), prim
+
+    def occluded(self, rays: Any) -> BoolArray:
+        """Any-hit test through ``ray_test``, see :meth:`Peer.occluded`."""
+        blocked = self._scene.ray_test(self._prepared(rays), coherent=False)
+        self._dr.eval(blocked)
+        self._dr.sync_thread()
+        return np.array(blocked, dtype=bool)
+
+
+class WarpPeer(Peer):
+    """NVIDIA Warp's ``mesh_query_ray`` on the CPU (its own BVH; kernels compiled by Warp)."""
+
+    name = "warp"
+    label = "warp (CPU)"
+    package = "warp"
+    extra = "pip install warp-lang"
+    threads_note = "warp: CPU kernels run on one thread"
+    #: Warp device the queries run on.
+    device = "cpu"
+
+    def _build(self, mesh: TriangleMesh) -> None:
+        from rayaccel.bench import warp_kernels
+
+        warp: Any = importlib.import_module("warp")  # untyped: Warp's stubs describe its DSL
+
+        warp.config.quiet = True
+        warp.init()
+        self._wp, self._kernels = warp, warp_kernels
+        self._points = warp.array(mesh.vertices.astype(REAL), dtype=warp.vec3, device=self.device)
+        self._indices = warp.array(
+            np.ravel(mesh.faces).astype(np.int32), dtype=warp.int32, device=self.device
+        )
+        self._mesh_wp = warp.Mesh(points=self._points, indices=self._indices)
+        # Compile (or load from Warp's cache) both kernels now, outside any timing
+        warmup = self.prepare(RayBatch(np.zeros((1, 3)), np.ones((1, 3))))
+        self.intersect(warmup)
+        self.occluded(warmup)
+
+    def prepare(self, rays: RayBatch) -> tuple[Any, Any, Any, int]:
+        """Return Warp arrays ``(origins, directions, tmax, n)`` (``tmin`` must be 0)."""
+        _require_zero_tmin(self.name, rays)
+        wp = self._wp
+        return (
+            wp.array(rays.origin, dtype=wp.vec3, device=self.device),
+            wp.array(rays.direction, dtype=wp.vec3, device=self.device),
+            wp.array(
+                np.ascontiguousarray(rays.tmax, dtype=REAL), dtype=wp.float32, device=self.device
+            ),
+            rays.n_rays,
+        )
+
+    def intersect(self, rays: Any) -> tuple[FloatArray, IntArray]:
+        """Closest hits, see :meth:`Peer.intersect`."""
+        wp = self._wp
+        origins, directions, tmax, n = self._prepared(rays)
+        t = wp.empty(n, dtype=wp.float32, device=self.device)
+        prim = wp.empty(n, dtype=wp.int32, device=self.device)
+        if n:
+            wp.launch(
+                self._kernels.closest_hits,
+                dim=n,
+                inputs=[self._mesh_wp.id, origins, directions, tmax],
+                outputs=[t, prim],
+                device=self.device,
+            )
+        return t.numpy().astype(REAL), prim.numpy().astype(INDEX)
+
+    def occluded(self, rays: Any) -> BoolArray:
+        """Any-hit test, see :meth:`Peer.occluded`."""
+        wp = self._wp
+        origins, directions, tmax, n = self._prepared(rays)
+        hit = wp.empty(n, dtype=wp.int32, device=self.device)
+        if n:
+            wp.launch(
+                self._kernels.any_hits,
+                dim=n,
+                inputs=[self._mesh_wp.id, origins, directions, tmax],
+                outputs=[hit],
+                device=self.device,
+            )
+        occluded: BoolArray = hit.numpy().astype(bool)
+        return occluded
+
+
 #: Every peer adapter by name, in table order (Open3D first: it is the reference).
 PEERS: dict[str, type[Peer]] = {
     "open3d": Open3DPeer,
     "embree": EmbreePeer,
+    "mitsuba": MitsubaPeer,
+    "warp": WarpPeer,
     "trimesh": TrimeshPeer,
 }
 

@@ -141,16 +141,27 @@ class _Threads:
         numba.set_num_threads(self.saved)
 
 
-def structure(mesh: TriangleMesh, builder: str, threads: int) -> api.Accel:
-    """Return this process's structure of ``builder`` over ``mesh``.
+def structure(mesh: TriangleMesh, builder: str, threads: int, config: SweepConfig) -> api.Accel:
+    """Return this process's structure of the builder labelled ``builder`` over ``mesh``.
 
     It is built on first use, with ``threads`` threads.
     """
     key = (mesh.digest(), builder)
     if key not in _ACCELS:
         with _Threads(threads):
-            _ACCELS[key] = api.build(mesh, builder)
+            _ACCELS[key] = _build_once(mesh, builder, config)
     return _ACCELS[key]
+
+
+def _build_once(mesh: TriangleMesh, builder: str, config: SweepConfig) -> api.Accel:
+    key, options = config.variant(builder)
+    return api.build(mesh, key, **options)
+
+
+def _trace(accel: api.Accel, cell: Cell, config: SweepConfig, rays: Any, query: str,
+           stats: bool = False) -> Any:  # fmt: skip
+    key, options = config.variant(str(cell.traversal))
+    return accel.trace(rays, query=query, traversal=key, stats=stats, **options)
 
 
 def _peer(name: str, mesh: TriangleMesh) -> Any:
@@ -165,12 +176,12 @@ def _peer(name: str, mesh: TriangleMesh) -> Any:
 
 def _build(cell: Cell, config: SweepConfig, mesh: TriangleMesh) -> Record:
     with _Threads(cell.threads):
-        api.build(mesh, cell.builder)  # compiles on a process's first build
+        _build_once(mesh, cell.builder, config)  # compiles on a process's first build
         times = []
         accel = None
         for _ in range(config.build_repeats):
             start = time.perf_counter()
-            accel = api.build(mesh, cell.builder)
+            accel = _build_once(mesh, cell.builder, config)
             times.append(time.perf_counter() - start)
     assert accel is not None
     _ACCELS[(mesh.digest(), cell.builder)] = accel
@@ -188,8 +199,8 @@ def _counters(cell: Cell, config: SweepConfig, mesh: TriangleMesh, rayset: RaySe
     # Everything on one thread, the structure's build and the oracle included, so
     # counter cells on several workers of one machine do not compete for its cores.
     with _Threads(1):
-        accel = structure(mesh, cell.builder, 1)
-        hits = accel.trace(rayset.rays, query=rayset.query, traversal=cell.traversal, stats=True)
+        accel = structure(mesh, cell.builder, 1, config)
+        hits = _trace(accel, cell, config, rayset.rays, rayset.query, stats=True)
         ref_key = (mesh.digest(), rayset.kind, rayset.n_rays, config.validate, config.rays.seed)
         if ref_key not in _REFERENCES:
             _REFERENCES[ref_key] = reference_hits(mesh, rayset, config.validate,
@@ -209,11 +220,9 @@ def _counters(cell: Cell, config: SweepConfig, mesh: TriangleMesh, rayset: RaySe
 
 
 def _timing(cell: Cell, config: SweepConfig, mesh: TriangleMesh, rayset: RaySet) -> Record:
-    accel = structure(mesh, cell.builder, cell.threads)
+    accel = structure(mesh, cell.builder, cell.threads, config)
     rays, query = rayset.rays, rayset.query
-    fns: list[Callable[[], Any]] = [
-        lambda: accel.trace(rays, query=query, traversal=cell.traversal)
-    ]
+    fns: list[Callable[[], Any]] = [lambda: _trace(accel, cell, config, rays, query)]
     peers: list[str] = []
     notes: list[str] = []
     for name in config.peers:

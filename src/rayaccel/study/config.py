@@ -3,8 +3,10 @@
 Example (``benchmarks/study/bundled.toml`` is the committed one)::
 
     scenes = ["cornell-box", "teapot"]
-    builders = ["bvh2.binned_sah", "bvh2.sbvh+reinsertion", "kdtree.sah", "grid.uniform"]
+    builders = ["bvh2.binned_sah", "bvh2.sbvh+reinsert", "kdtree.sah", "grid.uniform",
+                {key = "bvh2.binned_sah", max_leaf_size = 2}]   # a builder with options
     traversals = "all"            # or a list; each builder runs its structure's traversals
+    # traversals = ["bvh2.stack", {key = "bvh2.restart_trail", short_stack = 3}]
     threads = [2]
     peers = ["embree"]            # timed round-robin with each timing cell, on its rays
     repeats = 5                   # timed passes per timing cell
@@ -27,7 +29,13 @@ sets (:mod:`rayaccel.bench.raysets`); ``path`` renders the scene with the path
 tracer and records its rays (:mod:`rayaccel.study.recording`), giving the sets
 ``path-primary``, ``path-bounce`` (every depth) and ``path-shadow``.
 
-Every name is checked before any work starts; an error names the file's line.
+A builder or traversal given as an inline table ``{key = ..., option = value}``
+runs with those options (a step's options are a table named after the step:
+``{key = "bvh2.lbvh+reinsert", reinsert = {iterations = 2}}``); its label in the
+results and the report is ``key[option=value,...]`` (:func:`variant_label`), so one
+sweep can compare, say, short stacks of 1, 3 and 8 entries.
+
+Every name and option is checked before any work starts; an error names the file's line.
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ from pathlib import Path
 from typing import Any
 
 from rayaccel import registry
+from rayaccel.api import check_build_options
 from rayaccel.bench.peers import peer_names
 from rayaccel.errors import InvalidInputError, UnknownVariantError
 from rayaccel.scene import catalog
@@ -106,6 +115,14 @@ class SweepConfig:
     validate: int = 200
     rays: RayConfig = field(default_factory=RayConfig)
     passes: tuple[str, ...] = PASSES
+    #: The registry key and options behind each builder or traversal label that has
+    #: options (:func:`variant_label`); a plain key stands for itself.
+    variants: dict[str, tuple[str, dict[str, Any]]] = field(default_factory=dict)
+
+    def variant(self, label: str) -> tuple[str, dict[str, Any]]:
+        """Return the registry key and options of a builder or traversal label."""
+        key, options = self.variants.get(label, (label, {}))
+        return key, dict(options)
 
     def as_record(self) -> dict[str, Any]:
         """Return the configuration as JSON-ready values (stored in the results header)."""
@@ -142,6 +159,31 @@ def _positive(value: Any, name: str, source: str, text: str, low: int = 1) -> in
     return value
 
 
+def variant_label(key: str, options: dict[str, Any]) -> str:
+    """Return the label of ``key`` with ``options``: ``key[a=1,b=true]`` (sorted, JSON values)."""
+    if not options:
+        return key
+    items = ",".join(f"{k}={json.dumps(v, sort_keys=True)}" for k, v in sorted(options.items()))
+    return f"{key}[{items}]"
+
+
+def _variants(
+    entries: list[Any], name: str, source: str, text: str
+) -> list[tuple[str, str, dict[str, Any]]]:
+    """Return ``(label, key, options)`` for each entry: a key, or a table with ``key``."""
+    out: list[tuple[str, str, dict[str, Any]]] = []
+    for entry in entries:
+        if isinstance(entry, str):
+            out.append((entry, entry, {}))
+            continue
+        if not isinstance(entry, dict) or not isinstance(entry.get("key"), str):
+            raise _fail(source, text, f"{name}: expected a key or a table with a 'key', "
+                        f"got {entry!r}", name)  # fmt: skip
+        options = {k: v for k, v in entry.items() if k != "key"}
+        out.append((variant_label(entry["key"], options), entry["key"], options))
+    return out
+
+
 def parse_config(text: str, source: str = "<config>") -> SweepConfig:
     """Parse and check a sweep configuration written in TOML.
 
@@ -166,26 +208,36 @@ def parse_config(text: str, source: str = "<config>") -> SweepConfig:
             catalog.resolve(scene)
         except (UnknownVariantError, InvalidInputError) as exc:
             raise _fail(source, text, str(exc), f'"{scene}"') from exc
-    builders = [str(b) for b in _as_list(raw["builders"], "builders", source, text)]
-    if builders == ["all"]:
-        builders = list(registry.build_keys())
-    for key in builders:
+    listed_builders = _as_list(raw["builders"], "builders", source, text)
+    if listed_builders == ["all"]:
+        listed_builders = list(registry.build_keys())
+    variants: dict[str, tuple[str, dict[str, Any]]] = {}
+    builders: list[str] = []
+    for label, key, options in _variants(listed_builders, "builders", source, text):
         try:
-            registry.get_chain(key)
+            check_build_options(key, options)
         except (UnknownVariantError, InvalidInputError) as exc:
             raise _fail(source, text, str(exc), f'"{key}"') from exc
+        builders.append(label)
+        if options:
+            variants[label] = (key, options)
     wanted = _as_list(raw.get("traversals", "all"), "traversals", source, text)
-    for key in wanted:
-        if key != "all":
-            try:
-                registry.get(key, "traversal")
-            except (UnknownVariantError, InvalidInputError) as exc:
-                raise _fail(source, text, str(exc), f'"{key}"') from exc
+    listed_traversals = _variants([w for w in wanted if w != "all"], "traversals", source, text)
+    structure_of: dict[str, str] = {}
+    for label, key, options in listed_traversals:
+        try:
+            structure_of[label] = registry.get(key, "traversal").structure
+            registry.get(key, "traversal").make_options(options)
+        except (UnknownVariantError, InvalidInputError) as exc:
+            raise _fail(source, text, str(exc), f'"{key}"') from exc
+        if options:
+            variants[label] = (key, options)
     traversals: dict[str, tuple[str, ...]] = {}
     for builder in builders:
-        structure = registry.get_chain(builder)[0].structure
-        own = registry.keys("traversal", structure)
-        chosen = own if "all" in wanted else [k for k in wanted if k in own]
+        structure = registry.get_chain(variants.get(builder, (builder, {}))[0])[0].structure
+        own = registry.keys("traversal", structure) if "all" in wanted else []
+        chosen = own + [label for label, _, _ in listed_traversals
+                        if structure_of[label] == structure and label not in own]  # fmt: skip
         if not chosen:
             raise _fail(source, text, f"no listed traversal runs on {builder!r}",
                         f'"{builder}"')  # fmt: skip
@@ -214,6 +266,7 @@ def parse_config(text: str, source: str = "<config>") -> SweepConfig:
         validate=_positive(raw.get("validate", 200), "validate", source, text, low=0),
         rays=rays,
         passes=tuple(p for p in PASSES if p in passes),
+        variants=variants,
     )
 
 
