@@ -240,7 +240,8 @@ def distance(
     """Return ``(n,)`` float32 distances from each point to the mesh (computed in float64)."""
     bvh, memo = query_bvh(structure, mesh, cache)
     d2 = closest_points(bvh, mesh, points, memo)[0]
-    return np.sqrt(d2).astype(REAL)
+    out: FloatArray = np.sqrt(d2).astype(REAL)
+    return out
 
 
 def _check_method(method: str, n_rays: int) -> None:
@@ -285,13 +286,13 @@ def inside(
     if method == "winding":
         bvh, memo = query_bvh(structure, mesh, cache, unique=True)
         rows = memoised_layout(memo, "geometry.rows", lambda: MemoArray(mesh.hit_rows())).array
-        return winding_numbers(bvh, rows, points, memo) > 0.5  # type: ignore[no-any-return]
+        return winding_numbers(bvh, rows, points, memo) > 0.5
     bvh, memo = query_bvh(structure, mesh, cache)
     votes = np.zeros(n, dtype=np.int32)
     for direction in parity_directions(int(n_rays)):
         rays = RayBatch(points, np.broadcast_to(direction, (n, 3)), 0.0, np.inf)
         votes += count_all_hits(bvh, mesh, rays, memo) % 2
-    return votes > int(n_rays) // 2  # type: ignore[no-any-return]
+    return votes > int(n_rays) // 2
 
 
 def winding_number(
