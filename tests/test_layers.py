@@ -36,6 +36,8 @@ LAYERS: dict[str, int] = {
     "bvh": 4, "kdtree": 4, "grid": 4,
     "cuda": 5,
     "registry": 6, "metrics": 6,
+    "refit": 6,  # not in STYLE §2: refit or rebuild a structure for moved vertices
+    "persist": 6,  # not in STYLE §2: saved accel files (npz + JSON header, hashed)
     "api": 7,
     "render": 8, "bench": 8, "precompile": 8,
     "study": 9,  # not in STYLE §2: the thesis's study (path-traced rays, sweeps, reports)

@@ -13,9 +13,10 @@ from __future__ import annotations
 
 from rayaccel import config as config
 from rayaccel import registry as registry
-from rayaccel.api import Accel, build
+from rayaccel.api import Accel, build, load_accel
 from rayaccel.counters import COUNTER_NAMES, Counter
 from rayaccel.errors import (
+    AccelFileError,
     BackendUnavailableError,
     InvalidInputError,
     RayAccelError,
@@ -34,6 +35,7 @@ __version__ = "0.1.0"
 __all__ = [
     "COUNTER_NAMES",
     "Accel",
+    "AccelFileError",
     "BackendUnavailableError",
     "Counter",
     "HitBatch",
@@ -46,6 +48,7 @@ __all__ = [
     "TriangleMesh",
     "UnknownVariantError",
     "build",
+    "load_accel",
     "load_mesh",
     "scenes",
 ]

@@ -19,6 +19,10 @@ class SceneFileError(InvalidInputError):
     """A scene file is missing or malformed; the message names the path (and line)."""
 
 
+class AccelFileError(SceneFileError):
+    """A saved accel file is missing, truncated, tampered with, foreign or of another version."""
+
+
 class UnknownVariantError(RayAccelError, KeyError):
     """A registry key or an option name is unknown; the message suggests close matches."""
 
