@@ -106,11 +106,12 @@ def _ascii(text: str, source: str) -> tuple[F64Array, I64Array]:
 
 def _ascii_fast(text: str) -> F64Array | None:
     """Return the corners of one solid whose facets all match the rigid pattern, or ``None``."""
-    head = re.match(r"\s*solid[^\n]*\n\s*", text)
-    tail = re.search(r"endsolid[^\n]*\s*\Z", text)
-    if head is None or tail is None or tail.start() < head.end():
+    stripped = text.lstrip()
+    head = text.find("\n", len(text) - len(stripped))  # end of the 'solid' line
+    tail = text.rfind("endsolid")
+    if head < 0 or tail <= head or "\n" in text[tail:].rstrip():
         return None
-    body = text[head.end() : tail.start()]
+    body = text[head + 1 : tail].lstrip()
     if _FACETS.fullmatch(body) is None:
         return None
     try:
