@@ -261,8 +261,8 @@ def _read_bytes(path: Path, compressed: bool, limit: int, from_env: bool = True)
 def _load_gltf(data: bytes, path: Path, file_format: str, limit: int) -> tuple[F64Array, I64Array]:
     """Check the container and buffers, load with trimesh, and check what it returns."""
     document = _glb_document(data, path) if file_format == "glb" else _json_document(data, path)
-    _check_buffers(document, path, limit)
-    _check_accessors(document, path)
+    external = _check_buffers(document, path, limit)
+    _check_accessors(document, path, len(data) + external)
     try:
         import trimesh
         from trimesh.resolvers import FilePathResolver
@@ -369,8 +369,11 @@ def _json_document(data: bytes, path: Path) -> dict[str, Any]:
     return document
 
 
-def _check_buffers(document: dict[str, Any], path: Path, limit: int) -> None:
-    """Refuse external buffers that are missing, outside the file's folder or too large."""
+def _check_buffers(document: dict[str, Any], path: Path, limit: int) -> int:
+    """Refuse external buffers that are missing, outside the file's folder or too large.
+
+    Returns the bytes the external buffer files hold together.
+    """
     buffers = document.get("buffers", [])
     if not isinstance(buffers, list):
         raise SceneFileError(f"{path}: 'buffers' must be a JSON list")
@@ -384,27 +387,41 @@ def _check_buffers(document: dict[str, Any], path: Path, limit: int) -> None:
             continue
         if not isinstance(uri, str):
             raise SceneFileError(f"{path}: buffer {number}'s uri is not a string")
-        target = (folder / urllib.parse.unquote(uri)).resolve()
-        if not target.is_relative_to(folder):
+        shown = repr(uri[:200])
+        try:
+            target = (folder / urllib.parse.unquote(uri)).resolve()
+            if not target.is_relative_to(folder):
+                raise SceneFileError(
+                    f"{path}: buffer {number} refers to {shown}, outside the file's folder"
+                )
+            if not target.is_file():
+                raise SceneFileError(f"{path}: buffer {number} refers to {shown}, not a file")
+            total += target.stat().st_size
+        except (OSError, ValueError) as exc:  # a NUL byte, a name too long, ...
+            if isinstance(exc, SceneFileError):
+                raise
             raise SceneFileError(
-                f"{path}: buffer {number} refers to {uri!r}, outside the file's folder"
-            )
-        if not target.is_file():
-            raise SceneFileError(f"{path}: buffer {number} refers to {uri!r}, not a readable file")
-        total += target.stat().st_size
+                f"{path}: buffer {number} refers to {shown}, which cannot be read ({exc})"
+            ) from exc
         if total > limit:
             raise SceneFileError(
                 f"{path}: its buffers hold more than {limit} bytes, the limit on scene files "
                 f"(max_bytes, {MAX_SCENE_BYTES_VAR})"
             )
+    return total
 
 
 _COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
 _TYPE_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 
 
-def _check_accessors(document: dict[str, Any], path: Path) -> None:
-    """Refuse accessors that reach past their buffer view, and views past their buffer."""
+def _check_accessors(document: dict[str, Any], path: Path, available: int) -> None:
+    """Refuse accessors that reach past their buffer view, and views past their buffer.
+
+    An accessor without a buffer view stands for zeros; it may not declare more bytes
+    than the file and its buffers hold (``available``), so it cannot make the reader
+    allocate beyond what the data could describe.
+    """
 
     def items(key: str) -> list[Any]:
         value = document.get(key, [])
@@ -433,16 +450,25 @@ def _check_accessors(document: dict[str, Any], path: Path) -> None:
     for i, accessor in enumerate(items("accessors")):
         owner = f"accessor {i}"
         count = number(owner, accessor, "count")
-        if "bufferView" not in accessor or count == 0:
+        kind, shape = accessor.get("componentType"), accessor.get("type")
+        component = _COMPONENT_BYTES.get(kind) if isinstance(kind, int) else None
+        width = _TYPE_COMPONENTS.get(shape) if isinstance(shape, str) else None
+        if component is None or width is None:
+            raise SceneFileError(f"{path}: {owner} has an unknown componentType or type")
+        size = component * width
+        if "bufferView" not in accessor:
+            if count * size > available:
+                raise SceneFileError(
+                    f"{path}: {owner} has no bufferView and declares {count} elements "
+                    f"({count * size} bytes), more than the file and its buffers hold "
+                    f"({available} bytes)"
+                )
+            continue
+        if count == 0:
             continue
         j = number(owner, accessor, "bufferView")
         if j >= len(views):
             raise SceneFileError(f"{path}: {owner} refers to bufferView {j} of {len(views)}")
-        component = _COMPONENT_BYTES.get(accessor.get("componentType"))
-        width = _TYPE_COMPONENTS.get(accessor.get("type"))
-        if component is None or width is None:
-            raise SceneFileError(f"{path}: {owner} has an unknown componentType or type")
-        size = component * width
         stride = number(f"bufferView {j}", views[j], "byteStride", 0) or size
         need = number(owner, accessor, "byteOffset", 0) + stride * (count - 1) + size
         if need > views[j]["byteLength"]:
