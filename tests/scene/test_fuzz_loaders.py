@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from scene import fuzz_targets
 from scene.fuzz_targets import TARGETS, check_input, scratch_folder, traced
 
-EXAMPLES = 150
+EXAMPLES = 120
 
 
 @pytest.fixture(scope="module")

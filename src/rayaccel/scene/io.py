@@ -162,7 +162,7 @@ def load_mesh(
     InvalidInputError
         ``max_bytes`` (or ``RAYACCEL_MAX_SCENE_BYTES``) is not a positive integer.
     BackendUnavailableError
-        A non-OBJ format was asked for and trimesh is not installed.
+        A GLB or glTF file was asked for and trimesh is not installed.
     """
     file_path = Path(path)
     limit = _byte_limit(max_bytes)

@@ -22,7 +22,7 @@ other elements and properties are read for validation and dropped.
 Cost: binary files whose face rows all have one size, and ASCII files whose rows
 of each element have one length, are read with numpy in a few vectorised steps
 (the 1.44 M-triangle kitchen in a fraction of a second); mixed polygon sizes in
-binary files are walked row by row in Python (about a second per million faces).
+binary files are walked row by row in Python (2 to 3 seconds per million faces).
 """
 
 from __future__ import annotations
