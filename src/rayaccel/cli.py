@@ -11,6 +11,8 @@
                    [--repeats K] [--json results.jsonl] [--validate N]
     rayaccel cache clear|info
     rayaccel cache warm [--structure NAME ...] [--jobs N] [--serial-only]
+    rayaccel scenes list [--remote] [--json]
+    rayaccel scenes fetch NAME ... [--no-verify] [--force] [--progress]
 
 ``SCENE`` is a catalog name (``rayaccel list`` shows them; file scenes are found
 through ``RAYACCEL_SCENE_PATH``) or the path of a scene file. Choices of builders,
@@ -525,6 +527,56 @@ def _warm_cache(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_scenes(args: argparse.Namespace) -> int:
+    """List the scenes (``--remote``: the downloadable ones) or fetch downloadable scenes."""
+    from rayaccel.scene import catalog
+    from rayaccel.scene.fetch import cache_dir
+
+    if args.action == "fetch":
+        if not args.names:
+            raise InvalidInputError(
+                "scenes fetch: name at least one scene (see 'scenes list --remote')"
+            )
+        for name in args.names:
+            path = catalog.fetch(name, verify=not args.no_verify, force=args.force,
+                                 progress=args.progress)  # fmt: skip
+            _out(f"{name}: {path}")
+        return 0
+    if args.names:
+        raise InvalidInputError(f"scenes list takes no scene names, got {args.names}")
+    if not args.remote:
+        infos = catalog.describe()
+        if args.json:
+            _out(json.dumps([{"name": i.name, "kind": i.kind, "summary": i.summary, "up": i.up,
+                              "path": None if i.path is None else str(i.path)}
+                             for i in infos], indent=2))  # fmt: skip
+            return 0
+        for info in infos:
+            _out(f"  {info.name:<20}  {info.kind:<10}  {info.summary}")
+        return 0
+    rows = catalog.remote_status()
+    if args.json:
+        _out(json.dumps([{"name": r.scene.name, "title": r.scene.title, "url": r.scene.url,
+                          "sha256": r.scene.sha256, "size": r.scene.size,
+                          "member": r.scene.member, "licence": r.scene.licence,
+                          "credit": r.scene.credit, "notes": r.scene.notes,
+                          "cached": r.cached,
+                          "path": None if r.path is None else str(r.path)}
+                         for r in rows], indent=2))  # fmt: skip
+        return 0
+    _out(f"Downloadable scenes (cache: {cache_dir()}):")
+    width = max((len(r.scene.name) for r in rows), default=0)
+    for r in rows:
+        size = "size ?" if r.scene.size is None else f"{r.scene.size / 1e6:.1f} MB"
+        state = "cached" if r.cached else "not fetched"
+        check = "sha256 known" if r.verified else "NO published sha256 (needs --no-verify)"
+        _out(f"  {r.scene.name:<{width}}  {r.scene.title}; {size}; {state}; {check}")
+        _out(f"  {'':<{width}}  licence: {r.scene.licence}")
+        _out(f"  {'':<{width}}  credit: {r.scene.credit}")
+        _out(f"  {'':<{width}}  from: {r.scene.url}")
+    return 0
+
+
 # -- parser ------------------------------------------------------------------------------------
 
 
@@ -692,6 +744,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="warm: skip the parallel kernels (batches of 4096 rays and more)")
     p.add_argument("--quiet", action="store_true", help="warm: no line per job")
     p.set_defaults(func=cmd_cache)
+
+    p = sub.add_parser("scenes", parents=[common], help="list the scenes; download the "
+                       "standard benchmark scenes into the user cache")  # fmt: skip
+    p.add_argument("action", choices=("list", "fetch"),
+                   help="list: the scenes (--remote: the downloadable ones); fetch: download "
+                        "NAME... once, checked against its known SHA-256")  # fmt: skip
+    p.add_argument("names", nargs="*", metavar="NAME", help="fetch: downloadable scene names")
+    p.add_argument(
+        "--remote",
+        action="store_true",
+        help="list: the downloadable scenes, their licence, credit and cache state",
+    )
+    p.add_argument(
+        "--no-verify",
+        action="store_true",
+        help="fetch: also download scenes without a published SHA-256, unchecked",
+    )
+    p.add_argument("--force", action="store_true", help="fetch: download again even if cached")
+    p.add_argument("--progress", action="store_true", help="fetch: show a progress bar")
+    p.add_argument("--json", action="store_true", help="list: print JSON")
+    p.set_defaults(func=cmd_scenes)
     return parser
 
 

@@ -7,8 +7,9 @@ name without suffix matches, from the folders listed in ``RAYACCEL_SCENE_PATH``
 exact first, then ignoring case and treating ``-`` and ``_`` alike
 (``living-room`` finds ``living_room.ply``); a few aliases name the shared
 benchmark scenes (``bunny``, ``sponza``, ``bathroom``). A name that is the path of
-an existing file loads that file. Unknown names raise
-:class:`~rayaccel.errors.UnknownVariantError` with close matches.
+an existing file loads that file. Scenes downloaded by :func:`fetch` (``rayaccel
+scenes fetch NAME``) are found by their catalog name after the search path. Unknown
+names raise :class:`~rayaccel.errors.UnknownVariantError` with close matches.
 
 Loaded meshes are cached per process (LRU, keyed by resolved path, size and
 modification time) because the large scenes take seconds to parse; meshes are
@@ -31,6 +32,7 @@ from typing import Any, Literal
 from rayaccel.config import SCENE_PATH_VAR
 from rayaccel.errors import InvalidInputError, SceneFileError, UnknownVariantError
 from rayaccel.scene import procedural
+from rayaccel.scene.fetch import fetch, fetched_scenes, remote_status
 from rayaccel.scene.io import SUPPORTED_SUFFIXES, load_mesh, scene_stem
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -251,10 +253,22 @@ def names(search_path: PathList = None) -> list[str]:
     Returns
     -------
     list of str
-        The procedural names, then the file scenes found (aliases not listed).
+        The procedural names, then the file scenes found, then the fetched scenes
+        that no file on the search path shadows (aliases not listed).
     """
     files = [name for name in file_scenes(search_path) if name not in _PROCEDURAL]
-    return [*_PROCEDURAL, *files]
+    fetched = [name for name in _fetched(files) if name not in _PROCEDURAL]
+    return [*_PROCEDURAL, *files, *fetched]
+
+
+def _fetched(files: Iterable[str]) -> dict[str, Path]:
+    """Return the fetched scenes whose names no file scene in ``files`` takes."""
+    taken = {_normalise(ALIASES.get(_normalise(name), name)) for name in files}
+    return {
+        name: path
+        for name, path in fetched_scenes().items()
+        if _normalise(ALIASES.get(_normalise(name), name)) not in taken
+    }
 
 
 def describe(search_path: PathList = None) -> list[SceneInfo]:
@@ -273,9 +287,16 @@ def describe(search_path: PathList = None) -> list[SceneInfo]:
     for name, builder in _PROCEDURAL.items():
         summary = (inspect.getdoc(builder) or "").splitlines()[0]
         infos.append(SceneInfo(name, "procedural", summary, _UP_AXIS.get(name, "?")))
-    for name, path in file_scenes(search_path).items():
+    files = file_scenes(search_path)
+    for name, path in files.items():
         if name not in _PROCEDURAL:
             infos.append(SceneInfo(name, "file", path.name, _UP_AXIS.get(name, "?"), path))
+    remote = {status.scene.name: status.scene for status in remote_status()}
+    for name, path in _fetched(files).items():
+        if name not in _PROCEDURAL:
+            scene = remote[name]
+            summary = f"{scene.title} (fetched: {path.name})"
+            infos.append(SceneInfo(name, "file", summary, scene.up, path))
     return infos
 
 
@@ -320,7 +341,17 @@ def resolve(name: str, search_path: PathList = None) -> str | Path:
             return by_key[probe]
     if os.sep in name or (os.altsep and os.altsep in name):
         raise SceneFileError(f"{name}: no such file")
-    choices = [*_PROCEDURAL, *files, *ALIASES]
+    remote = {_normalise(status.scene.name): status for status in remote_status()}
+    for probe in (key, _normalise(wanted)):
+        if probe in remote:
+            status = remote[probe]
+            if status.path is not None:
+                return status.path
+            raise UnknownVariantError(
+                f"scene {name!r} is downloadable but not fetched yet; run 'rayaccel scenes "
+                f"fetch {status.scene.name}' or rayaccel.scenes.fetch({status.scene.name!r})"
+            )
+    choices = [*_PROCEDURAL, *files, *ALIASES, *(s.scene.name for s in remote.values())]
     close = difflib.get_close_matches(name, choices, n=3, cutoff=0.5)
     close += [c for c in difflib.get_close_matches(key, choices, n=3, cutoff=0.5) if c not in close]
     hint = f"did you mean {', '.join(map(repr, close))}? " if close else ""
@@ -328,7 +359,8 @@ def resolve(name: str, search_path: PathList = None) -> str | Path:
     where = os.pathsep.join(map(str, folders)) if folders else "nothing"
     raise UnknownVariantError(
         f"unknown scene {name!r}; {hint}procedural scenes: {', '.join(_PROCEDURAL)}; "
-        f"file scenes are looked up in {SCENE_PATH_VAR} (searched: {where})"
+        f"file scenes are looked up in {SCENE_PATH_VAR} (searched: {where}); "
+        "'rayaccel scenes list --remote' shows the scenes that can be downloaded"
     )
 
 
@@ -466,10 +498,12 @@ __all__ = [
     "camera_preset",
     "clear_cache",
     "describe",
+    "fetch",
     "file_scenes",
     "get",
     "load_cached",
     "names",
+    "remote_status",
     "resolve",
     "search_folders",
 ]
