@@ -4,10 +4,10 @@ Each :class:`RemoteScene` names one scene that :func:`rayaccel.scenes.fetch` dow
 from its public source (McGuire's Computer Graphics Archive, the Stanford 3D Scanning
 Repository, Bitterli's Rendering Resources) into the user cache. A download is checked
 against the SHA-256 in :attr:`RemoteScene.sha256`; the sources publish no checksums
-themselves, so each hash here is one that other projects recorded for the same URL
-(``source_of_hash`` says which), taken where two or more records agree or, for the few
-with one record, noted as such. Entries whose hash nobody published have
-``sha256=None``, and fetch refuses them unless the user asks for an unchecked download.
+themselves, so each hash here is one that two or more other public projects recorded,
+in agreement, for the same URL (``source_of_hash`` says so). Entries whose hash nobody
+published have ``sha256=None``, and fetch refuses them unless the user asks for an
+unchecked download.
 
 ``member`` is the scene file inside an archive, a path relative to the unpacked
 folder (when the archive's layout differs, a unique file of that name anywhere in it
