@@ -530,7 +530,7 @@ def _warm_cache(args: argparse.Namespace) -> int:
 def cmd_scenes(args: argparse.Namespace) -> int:
     """List the scenes (``--remote``: the downloadable ones) or fetch downloadable scenes."""
     from rayaccel.scene import catalog
-    from rayaccel.scene.fetch import cache_dir
+    from rayaccel.scene.fetch import cache_dir, download_sha256, lookup
 
     if args.action == "fetch":
         if not args.names:
@@ -541,6 +541,11 @@ def cmd_scenes(args: argparse.Namespace) -> int:
             path = catalog.fetch(name, verify=not args.no_verify, force=args.force,
                                  progress=args.progress)  # fmt: skip
             _out(f"{name}: {path}")
+            if lookup(name).sha256 is None:
+                sys.stderr.write(
+                    f"rayaccel: warning: {name} was downloaded unchecked (no published "
+                    f"SHA-256); its download has SHA-256 {download_sha256(name)}\n"
+                )
         return 0
     if args.names:
         raise InvalidInputError(f"scenes list takes no scene names, got {args.names}")

@@ -442,9 +442,13 @@ def test_cli_refusals(server, cache, monkeypatch, capsys):
     assert "--no-verify" in err
     assert counts["/tet.obj"] == 0
 
-    code, out, _ = run(capsys, "scenes", "fetch", "test-nohash", "--no-verify")
+    code, out, err = run(capsys, "scenes", "fetch", "test-nohash", "--no-verify")
     assert code == 0
     assert out.strip().endswith("tet.obj")
+    assert (
+        f"downloaded unchecked (no published SHA-256); its download has SHA-256 {sha256(TET_OBJ)}"
+        in err
+    )
     assert counts["/tet.obj"] == 1
 
     code, _, err = run(capsys, "scenes", "fetch", "stanford-buny")

@@ -167,6 +167,21 @@ def cached_path(name: str) -> Path | None:
     return _scene_file(lookup(name), cache_dir())
 
 
+def download_sha256(name: str) -> str | None:
+    """Return the SHA-256 of a scene's cached download, or ``None`` when there is none.
+
+    For entries without a published hash this is the value to check against the
+    source by other means (and to record in the catalog).
+
+    Raises
+    ------
+    UnknownVariantError
+        No downloadable scene has that name.
+    """
+    scene = lookup(name)
+    return _sha256(_download_folder(scene, cache_dir()) / _basename(scene.url))
+
+
 def fetched_scenes() -> dict[str, Path]:
     """Return every downloadable scene already in the cache, ``name -> scene file``."""
     root = cache_dir()
@@ -453,6 +468,7 @@ __all__ = [
     "RemoteStatus",
     "cache_dir",
     "cached_path",
+    "download_sha256",
     "fetch",
     "fetched_scenes",
     "lookup",
