@@ -442,6 +442,35 @@ def test_gltf_accessor_fields_of_the_wrong_type(tmp_path, key, value):
     refused(gltf_files(tmp_path, "types.gltf", edit), r"accessor 0")
 
 
+def _chain(doc, n):
+    doc["nodes"] = [{"mesh": 0, "children": [i + 1]} for i in range(n)] + [{"mesh": 0}]
+    doc["scenes"][0]["nodes"] = [0]
+
+
+@pytest.mark.parametrize(
+    ("edit", "pattern"),
+    [
+        (lambda doc: doc["nodes"][0].update(children=[0]), r"own child"),
+        (
+            lambda doc: _chain(doc, 2) or doc["nodes"][2].update(children=[0]),
+            r"cycle",
+        ),
+        (lambda doc: doc["nodes"].append({"children": [0, 0]}), r"more than one parent"),
+        (lambda doc: doc["nodes"][0].update(children=[7]), r"child 7"),
+        (lambda doc: _chain(doc, 2000), r"levels deep"),
+    ],
+)
+def test_gltf_node_hierarchy_must_be_shallow_disjoint_trees(tmp_path, edit, pattern):
+    start = time.perf_counter()
+    refused(gltf_files(tmp_path, "nodes.gltf", edit), pattern)
+    assert time.perf_counter() - start < 2.0  # trimesh takes minutes on a 2000-node chain
+
+
+def test_gltf_moderately_deep_hierarchy_loads(tmp_path):
+    mesh = load_mesh(gltf_files(tmp_path, "chain.gltf", lambda doc: _chain(doc, 40)))
+    assert mesh.n_triangles == 41 * 4
+
+
 @pytest.mark.parametrize("uri", ["a\u0000b.bin", "x" * 5000 + ".bin", "../outside.bin"])
 def test_gltf_buffer_uri_that_cannot_be_read(tmp_path, uri):
     def edit(doc):
