@@ -1,7 +1,7 @@
 """Fuzz the scene-file loaders for a given time (the long run of the CI fuzz tests).
 
 Runs the same targets and oracle (``tests/scene/fuzz_targets.py``: OBJ, PLY
-ASCII, PLY binary, STL ASCII, STL binary, gzip) with many more examples. Each
+ASCII, PLY binary, STL ASCII, STL binary, gzip, GLB) with many more examples. Each
 target gets an equal share of the time, in rounds of ``--round`` hypothesis
 examples with a fresh random seed each, taken in turn so an interrupted run is
 still balanced. A contract breach (an exception other than SceneFileError, a

@@ -1,5 +1,9 @@
 """Fuzz targets for the scene-file loaders, shared by the CI tests and the long run.
 
+Targets: OBJ, ASCII PLY, binary PLY, ASCII STL, binary STL, gzip (the
+decompression layer and the PLY reader behind it) and GLB (the container checks
+and trimesh behind them).
+
 A target is a file suffix, valid seed files and a way to make inputs: hypothesis
 mutates a seed (byte flips, overwrites with boundary integers, number tokens
 swapped for hostile ones, truncation, insertion, deletion, duplication), or
@@ -122,6 +126,18 @@ STL_BINARY_SEEDS = [
     + b"".join(struct.pack("<12fH", 0, 0, 1, *np.ravel(tri), 0) for tri in _TRIANGLES)
     for header in (b"binary", b"solid looks like ascii")
 ]
+
+
+def _glb_seeds() -> list[bytes]:
+    import trimesh
+
+    faces = np.asarray([(0, 1, 2), (0, 2, 3), (0, 1, 4)])
+    mesh = trimesh.Trimesh(np.asarray(_SQUARE, dtype=np.float64), faces, process=False)
+    blob = mesh.export(file_type="glb")
+    return [blob if isinstance(blob, bytes) else bytes(blob)]
+
+
+GLB_SEEDS = _glb_seeds()
 _BOMB = gzip.compress(PLY_BINARY_SEEDS[0] + bytes(2 * MAX_BYTES), compresslevel=9)
 
 
@@ -223,6 +239,7 @@ TARGETS: dict[str, Target] = {
         Target("stl_ascii", ".stl", inputs([STL_ASCII_SEED])),
         Target("stl_binary", ".stl", inputs(STL_BINARY_SEEDS)),
         Target("gz", ".ply.gz", _gz_inputs()),
+        Target("glb", ".glb", inputs(GLB_SEEDS)),
     ]
 }
 
