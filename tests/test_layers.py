@@ -36,6 +36,7 @@ LAYERS: dict[str, int] = {
     "bvh": 4, "kdtree": 4, "grid": 4,
     "cuda": 5,
     "registry": 6, "metrics": 6,
+    "chunked": 6,  # not in STYLE §2: huge numpy batches in chunks, Dask arrays of rays
     "refit": 6,  # not in STYLE §2: refit or rebuild a structure for moved vertices
     "persist": 6,  # not in STYLE §2: saved accel files (npz + JSON header, hashed)
     "api": 7,

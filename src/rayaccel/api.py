@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from rayaccel import config, persist, registry
+from rayaccel import chunked, config, persist, registry
 from rayaccel import refit as refitting
 from rayaccel.bvh import geometry
 from rayaccel.counters import counters_to_dict, empty_counters
@@ -155,9 +155,12 @@ class Accel:
 
         Parameters
         ----------
-        origins, directions : (n, 3) array_like of float
+        origins, directions : (n, 3) array_like of float, or Dask arrays
             Coerced once to float32. Directions need not be normalised; a zero or
-            non-finite direction is a miss.
+            non-finite direction is a miss. Beyond ``rayaccel.config.RAY_BUDGET``
+            bytes of copies the rays are traced in chunks; Dask arrays give Dask
+            arrays in the result, traced block by block when computed
+            (:mod:`rayaccel.chunked`).
         tmin, tmax : float or (n,) array_like of float
             Hits are accepted in ``[tmin, tmax]``; ``tmin > tmax`` is a miss.
         traversal : str, optional
@@ -172,8 +175,7 @@ class Accel:
         HitBatch
             ``t`` (inf on a miss), ``prim`` (-1 on a miss), barycentrics ``u, v``.
         """
-        rays = RayBatch(origins, directions, tmin, tmax)
-        return self.trace(rays, query="closest", traversal=traversal, stats=stats, **options)
+        return self._query(origins, directions, tmin, tmax, "closest", traversal, stats, options)
 
     def occluded(
         self,
@@ -189,8 +191,36 @@ class Accel:
 
         For per-ray counters of an any-hit query use ``trace(rays, query="any", stats=True)``.
         """
+        return self._query(origins, directions, tmin, tmax, "any", traversal, False, options).hit
+
+    def _query(
+        self,
+        origins: Any,
+        directions: Any,
+        tmin: Any,
+        tmax: Any,
+        query: str,
+        traversal: str | None,
+        stats: bool,
+        options: dict[str, Any],
+    ) -> HitBatch:
+        """Trace numpy rays, in chunks beyond the ray budget, or Dask arrays of rays lazily."""
+        if any(chunked.is_dask_array(a) for a in (origins, directions, tmin, tmax)):
+            if stats:
+                raise InvalidInputError("stats: per-ray counters are not available for Dask arrays")
+            return chunked.trace_dask(self, origins, directions, tmin, tmax, query=query,
+                                      traversal=traversal, options=options)  # fmt: skip
+        n = chunked.count_rays(origins, directions)
+        chunk = chunked.rays_per_chunk(config.RAY_BUDGET)
+        if n is not None and n > chunk:
+            return chunked.trace_in_chunks(
+                lambda rays: self.trace(
+                    rays, query=query, traversal=traversal, stats=stats, **options
+                ),
+                origins, directions, tmin, tmax, n, chunk,
+            )  # fmt: skip
         rays = RayBatch(origins, directions, tmin, tmax)
-        return self.trace(rays, query="any", traversal=traversal, **options).hit
+        return self.trace(rays, query=query, traversal=traversal, stats=stats, **options)
 
     def traversal_state(
         self,
