@@ -12,7 +12,8 @@ as a crash, and its minimal input saved to ``--crash-dir``::
     nice -n 19 python benchmarks/fuzz_loaders.py --minutes 60
 
 Prints, per target, the examples run, how many loaded and were refused, the
-crashes found and the time spent, and writes them as JSON to ``--out``.
+crashes found and the time spent, and writes them as JSON to ``--out``; SIGINT or
+SIGTERM end the run early with the same report.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import random
+import signal
 import sys
 import time
 from pathlib import Path
@@ -39,9 +41,13 @@ from scene.fuzz_targets import (  # noqa: E402 - needs the tests folder on the p
 )
 
 
-def fuzz_round(target: Target, examples: int, round_seed: int, folder: Path) -> dict[str, Any]:
-    """Run one hypothesis round of ``examples`` inputs; return its counts and any crash."""
-    counts = {"examples": 0, "loaded": 0, "refused": 0}
+def fuzz_round(
+    target: Target, examples: int, round_seed: int, folder: Path, counts: dict[str, Any]
+) -> dict[str, Any] | None:
+    """Run one hypothesis round of ``examples`` inputs, counting into ``counts`` as it goes.
+
+    Returns the crash (seed, error, shrunk input) if the round found one, else ``None``.
+    """
     failing: list[bytes] = []
 
     @seed(round_seed)
@@ -72,7 +78,7 @@ def fuzz_round(target: Target, examples: int, round_seed: int, folder: Path) -> 
             "error": f"{type(exc).__name__}: {exc}"[:2000],
             "input": failing[-1] if failing else b"",
         }
-    return {**counts, "crash": crash}
+    return crash
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,6 +91,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--crash-dir", type=Path, default=Path("fuzz-crashes"))
     parser.add_argument("--out", type=Path, default=None, help="write the summary as JSON here")
     args = parser.parse_args(argv)
+    # SIGTERM (and SIGINT, which a shell may ignore in background jobs) stop the run and
+    # report what ran.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     master = random.Random(args.seed)
     share = args.minutes * 60.0 / len(args.targets)
@@ -103,15 +113,15 @@ def main(argv: list[str] | None = None) -> int:
                 for name in pending:
                     round_seed = master.getrandbits(32)
                     wall, cpu = time.monotonic(), time.process_time()
-                    result = fuzz_round(TARGETS[name], args.round, round_seed, folder)
                     total = totals[name]
-                    total["seconds"] += time.monotonic() - wall
-                    total["cpu"] += time.process_time() - cpu
-                    for key in ("examples", "loaded", "refused"):
-                        total[key] += result[key]
-                    if result["crash"] is not None:
+                    try:
+                        found = fuzz_round(TARGETS[name], args.round, round_seed, folder, total)
+                    finally:
+                        total["seconds"] += time.monotonic() - wall
+                        total["cpu"] += time.process_time() - cpu
+                    if found is not None:
                         total["crashes"] += 1
-                        crash = {"target": name, **result["crash"]}
+                        crash = {"target": name, **found}
                         args.crash_dir.mkdir(parents=True, exist_ok=True)
                         saved = args.crash_dir / f"{name}-{round_seed}{TARGETS[name].suffix}"
                         saved.write_bytes(crash.pop("input"))
