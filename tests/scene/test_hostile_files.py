@@ -279,6 +279,12 @@ def test_ply_bad_headers(tmp_path, header, pattern):
     refused(write(tmp_path, "header.ply", header), pattern)
 
 
+def test_ply_header_at_the_end_of_the_file_without_a_newline(tmp_path):
+    data = ply_bytes(n_faces=0, n_vertices=0)
+    data = data[: data.index(b"end_header") + len(b"end_header")]
+    refused(write(tmp_path, "bare.ply", data), r"no triangles")
+
+
 def test_ply_without_faces(tmp_path):
     text = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
     text += "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"

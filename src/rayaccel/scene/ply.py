@@ -184,12 +184,14 @@ def _parse_header(data: bytes, source: str) -> tuple[list[_Element], str | None,
     while True:
         end = data.find(b"\n", pos)
         if end < 0:
-            raise SceneFileError(
-                f"{source}: the header has no 'end_header' line (it ends at line {line_no + 1})"
-            )
+            if data[pos:].strip() != b"end_header":
+                raise SceneFileError(
+                    f"{source}: the header has no 'end_header' line (it ends at line {line_no + 1})"
+                )
+            end = len(data) - 1 if data.endswith(b"\r") else len(data)  # at the end, no data
         line_no += 1
         raw = data[pos:end].rstrip(b"\r")
-        pos = end + 1
+        pos = min(end + 1, len(data))
         if line_no == 1:
             continue
         text = raw.decode("latin-1")
