@@ -279,6 +279,20 @@ def test_ply_bad_headers(tmp_path, header, pattern):
     refused(write(tmp_path, "header.ply", header), pattern)
 
 
+@pytest.mark.parametrize("faces", [TRIS, MIXED])
+def test_ascii_ply_unparsable_number_names_the_line(tmp_path, faces):
+    data = ply_bytes(faces=faces, fmt="ascii")
+    lines = data.split(b"\n")
+    row = lines.index(b"end_header") + 7  # the second face row
+    lines[row] = lines[row][:-1] + b"x"
+    refused(write(tmp_path, "token.ply", b"\n".join(lines)), rf"line {row + 1}: cannot parse")
+
+
+def test_ascii_ply_non_ascii_byte_names_the_line(tmp_path):
+    data = ply_bytes(fmt="ascii").replace(b"\n3 0 1 2\n", b"\n3 0 1 2\xe9\n")
+    refused(write(tmp_path, "accent.ply", data), r"line \d+: non-ASCII")
+
+
 def test_ply_header_at_the_end_of_the_file_without_a_newline(tmp_path):
     data = ply_bytes(n_faces=0, n_vertices=0)
     data = data[: data.index(b"end_header") + len(b"end_header")]

@@ -558,22 +558,25 @@ class _AsciiBody:
             width = table.shape[1]
             starts = np.arange(n, dtype=np.int64) * width
             return table.reshape(-1), starts, np.full(n, width, dtype=np.int64)
-        tokens = [row.split() for row in rows]
-        widths = np.fromiter((len(t) for t in tokens), dtype=np.int64, count=n)
-        flat_tokens = [token for row in tokens for token in row]
-        try:
-            flat = np.asarray(flat_tokens, dtype=np.float64)
-        except ValueError:
-            for row, row_tokens in enumerate(tokens):
-                for token in row_tokens:
+        # Rows of different lengths: count each row's values, then parse them all as one
+        # line with numpy's C reader, or value by value where it cannot (exact errors).
+        widths = np.fromiter((len(row.split()) for row in rows), dtype=np.int64, count=n)
+        line = _loadtxt(" ".join(rows))
+        if line is not None and line.size == int(widths.sum()):
+            flat = line.reshape(-1)
+        else:
+            flat = np.empty(int(widths.sum()), dtype=np.float64)
+            k = 0
+            for row, text in enumerate(rows):
+                for token in text.split():
                     try:
-                        float(token)
+                        flat[k] = float(token)
                     except ValueError:
                         raise SceneFileError(
                             f"{self.source}: line {int(numbers[row])}: cannot parse number "
                             f"{token[:40]!r}"
                         ) from None
-            raise  # pragma: no cover - numpy refused a token float() accepts
+                    k += 1
         return flat, np.cumsum(widths) - widths, widths
 
     def finish(self, elements: list[_Element]) -> None:
