@@ -149,7 +149,7 @@ def _flatten(structure: Any, prefix: str, arrays: dict[str, np.ndarray]) -> dict
     return {"class": name, "fields": fields}
 
 
-def _digest(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
+def content_digest(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
     """SHA-256 over the header (without its hash) and every array's name, dtype, shape, bytes."""
     h = hashlib.sha256()
     body = {k: v for k, v in header.items() if k != "sha256"}
@@ -220,7 +220,7 @@ def save(
         },
     }
     header = json.loads(json.dumps(header, default=json_default))
-    header["sha256"] = _digest(header, arrays)
+    header["sha256"] = content_digest(header, arrays)
     text = json.dumps(header, sort_keys=True, default=json_default).encode()
     buffer = io.BytesIO()
     members = {HEADER: np.frombuffer(text, dtype=np.uint8), **arrays}
@@ -343,7 +343,7 @@ def load(path: str | os.PathLike[str]) -> SavedAccel:
     with archive:
         header = _read_header(file, archive)
         arrays = _read_arrays(file, archive, header)
-    if header.get("sha256") != _digest(header, arrays):
+    if header.get("sha256") != content_digest(header, arrays):
         raise _fail(file, "content hash mismatch: the file was altered or corrupted; refusing it")
     try:
         mesh_info = header["mesh"]
