@@ -132,8 +132,16 @@ def _all_hits_kernel(fill: bool, parallel: bool) -> Any:
         n_rays = origin.shape[0]
         n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
         counter = new_counter()
+        # Unpack the layout once: each field read inside the loops would be a new
+        # reference (two atomic reference-count updates per read).
         box = bvh.inner_box
         refs = bvh.inner_ref
+        leaf_first = bvh.leaf_first
+        leaf_count = bvh.leaf_count
+        tri = bvh.tri
+        tri_prim = bvh.tri_prim
+        root_box = bvh.root_box
+        root = bvh.root_ref[0]
         for _worker in prange(worker_count(n_chunks, n_threads, parallel)):
             # Per-worker scratch: the stack, the mailbox and the sort buffers.
             stack = np.empty(STACK_SIZE, dtype=np.int32)
@@ -150,17 +158,17 @@ def _all_hits_kernel(fill: bool, parallel: bool) -> Any:
                     (
                         valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
                         kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_top, pad,
-                    ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+                    ) = ray_prologue(origin, direction, tmin, tmax, r, root_box)  # fmt: skip
                     n_hits = 0
                     if valid:
                         # The whole interval stays open: no hit culls anything.
                         box_lo = t_lo - pad
                         box_hi = t_top + pad
                         entry = root_entry(
-                            bvh.root_box, ox, oy, oz, ix, iy, iz,
+                            root_box, ox, oy, oz, ix, iy, iz,
                             nx, ny, nz, fx, fy, fz, box_lo, box_hi,
                         )  # fmt: skip
-                        node = bvh.root_ref[0]
+                        node = root
                         sp = 0
                         done = entry == INF32
                         while not done:
@@ -185,16 +193,16 @@ def _all_hits_kernel(fill: bool, parallel: bool) -> Any:
                                     continue
                             else:
                                 # Leaf: every triangle hit in the interval counts, once.
-                                first = bvh.leaf_first[~node]
-                                last = first + bvh.leaf_count[~node]
+                                first = leaf_first[~node]
+                                last = first + leaf_count[~node]
                                 for i in range(first, last):
-                                    prim = bvh.tri_prim[i]
+                                    prim = tri_prim[i]
                                     if n_mailbox > 0:
                                         if mailbox[prim] == r:
                                             continue
                                         mailbox[prim] = r
                                     t, u, v = ray_triangle(
-                                        bvh.tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz,
+                                        tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz,
                                         t_lo, t_top,
                                     )  # fmt: skip
                                     if t < INF32:
