@@ -154,8 +154,9 @@ def dipole_tree(bvh: Bvh2, tri: np.ndarray, cache: dict[str, Any] | None) -> Dip
 
     Raises
     ------
-    InvalidInputError
-        The tree references a triangle from several leaves (the sums would count it twice).
+    ValueError
+        The tree references a triangle from several leaves (the sums would count it twice);
+        :func:`rayaccel.bvh.geometry.query_bvh` never passes such a tree.
     """
     if bvh.n_refs != bvh.n_prims:
         raise ValueError("dipole_tree: the tree repeats triangles (n_refs > n_prims)")
