@@ -16,6 +16,9 @@ vector IR themselves. They compile for the CPU only (the CUDA traversals have th
 
 Signature (all three): ``slab_testN(box, row, near_x, far_x, near_y, far_y, near_z, far_z,
 ox, oy, oz, ix, iy, iz, t_lo, t_hi, out) -> int32``. ``box`` is a 2D float32 array;
+the ray scalars are float32, or float64 for float64 rays (``precision="float64"``), in
+which case the planes are widened exactly to float64 and the whole test runs in
+``<N x double>`` vectors;
 the N lanes of each plane start at the given columns of row ``row`` (the caller picks
 near and far planes by the signs of ``ix, iy, iz``). Lane ``i`` of ``out`` gets
 ``max(t_lo, entry)`` when box ``i`` is hit within ``[t_lo, t_hi]`` and ``inf``
@@ -41,8 +44,12 @@ def _slab_codegen(lanes: int) -> Any:
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
         box_type = signature.args[0]
         out_type = signature.args[16]
-        float_type = ir.FloatType()
+        real = signature.args[8]
+        float_type = context.get_value_type(real)
         vec_type = ir.VectorType(float_type, lanes)
+        plane_type = ir.VectorType(context.get_value_type(box_type.dtype), lanes)
+        out_vec_type = ir.VectorType(context.get_value_type(out_type.dtype), lanes)
+        suffix = "f64" if real == types.float64 else "f32"
         box_view = context.make_array(box_type)(context, builder, args[0])
         out_view = context.make_array(out_type)(context, builder, args[16])
         row_index = context.cast(builder, args[1], signature.args[1], types.intp)
@@ -54,14 +61,16 @@ def _slab_codegen(lanes: int) -> Any:
             return vec
 
         def scalar(i: int) -> Any:
-            return splat(context.cast(builder, args[i], signature.args[i], types.float32))
+            return splat(context.cast(builder, args[i], signature.args[i], real))
 
         def plane(i: int) -> Any:
             column = context.cast(builder, args[i], signature.args[i], types.intp)
             pointer = cgutils.get_item_pointer(
                 context, builder, box_type, box_view, [row_index, column], wraparound=False
             )
-            return builder.load(builder.bitcast(pointer, vec_type.as_pointer()), align=4)
+            loaded = builder.load(builder.bitcast(pointer, plane_type.as_pointer()), align=4)
+            # float32 planes against float64 rays: widen exactly (fpext is exact).
+            return loaded if plane_type == vec_type else builder.fpext(loaded, vec_type)
 
         def take_if(cond: str, candidate: Any, current: Any) -> Any:
             # Ordered compare: a NaN lane keeps ``current`` (no constraint).
@@ -81,7 +90,7 @@ def _slab_codegen(lanes: int) -> Any:
             leave = take_if("<", far, leave)
         # Widen the exit by 2 ulp (Ize 2013), clamp to the interval, keep hit lanes.
         fabs = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(vec_type, [vec_type]), f"llvm.fabs.v{lanes}f32"
+            builder.module, ir.FunctionType(vec_type, [vec_type]), f"llvm.fabs.v{lanes}{suffix}"
         )
         widening = splat(ir.Constant(float_type, float(TWO_ULP)))
         leave = builder.fadd(leave, builder.fmul(builder.call(fabs, [leave]), widening))
@@ -92,16 +101,23 @@ def _slab_codegen(lanes: int) -> Any:
             context, builder, out_type, out_view, [zero], wraparound=False
         )
         result = builder.select(hit, enter, inf)
-        builder.store(result, builder.bitcast(out_pointer, vec_type.as_pointer()), align=4)
+        if out_vec_type != vec_type:
+            # Entry distances of float64 rays kept in a float32 scratch array (rounded to
+            # nearest: the traversals' culling pad is far wider than that rounding).
+            result = builder.fptrunc(result, out_vec_type)
+        builder.store(result, builder.bitcast(out_pointer, out_vec_type.as_pointer()), align=4)
         # Lane i of the mask is bit i (one movmskps).
         return builder.zext(builder.bitcast(hit, ir.IntType(lanes)), ir.IntType(32))
 
     return codegen
 
 
-def _signature(box: Any, columns: tuple[Any, ...], out: Any) -> Any:
-    f32 = types.float32
-    return types.int32(box, *columns, *([f32] * 8), out)
+def _signature(box: Any, columns: tuple[Any, ...], scalars: tuple[Any, ...], out: Any) -> Any:
+    """Return the test's signature: float64 if any ray scalar is float64, else float32."""
+    real = types.float64 if types.float64 in scalars else types.float32
+    if box.dtype != types.float32 or out.dtype not in (types.float32, real):
+        raise TypeError(f"slab test: float32 boxes and a {real} out array expected")
+    return types.int32(box, *columns, *([real] * 8), out)
 
 
 @intrinsic
@@ -112,7 +128,8 @@ def slab_test2(
 ) -> Any:  # fmt: skip
     """Two slab tests in ``<2 x float>`` vectors (see the module docstring)."""
     columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
-    return _signature(box, columns, out), _slab_codegen(2)
+    scalars = (ox, oy, oz, ix, iy, iz, t_lo, t_hi)
+    return _signature(box, columns, scalars, out), _slab_codegen(2)
 
 
 @intrinsic
@@ -123,7 +140,8 @@ def slab_test4(
 ) -> Any:  # fmt: skip
     """Four slab tests in ``<4 x float>`` vectors (see the module docstring)."""
     columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
-    return _signature(box, columns, out), _slab_codegen(4)
+    scalars = (ox, oy, oz, ix, iy, iz, t_lo, t_hi)
+    return _signature(box, columns, scalars, out), _slab_codegen(4)
 
 
 @intrinsic
@@ -134,4 +152,5 @@ def slab_test8(
 ) -> Any:  # fmt: skip
     """Eight slab tests in ``<8 x float>`` vectors (see the module docstring)."""
     columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
-    return _signature(box, columns, out), _slab_codegen(8)
+    scalars = (ox, oy, oz, ix, iy, iz, t_lo, t_hi)
+    return _signature(box, columns, scalars, out), _slab_codegen(8)

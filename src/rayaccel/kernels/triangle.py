@@ -13,6 +13,13 @@ even when the compiler fuses multiply-adds (``fastmath`` ``contract``), which
 would otherwise break the antisymmetry of ``Cx*By - Cy*Bx`` in float32 and open
 cracks along shared edges. The remaining arithmetic (shear, ``t``) stays float32.
 
+Float64 rows and rays (``precision="float64"``) compile the same code in float64
+(:mod:`rayaccel.kernels.real`): the shear and ``t`` are float64 and the edge functions'
+products round, as in Embree's and pbrt's double-precision builds. They are emitted
+without FMA contraction, so a shared edge's function is still exactly antisymmetric and
+the test stays watertight; only a sign within a rounding error of zero can be wrong,
+which moves a hit to the neighbouring triangle rather than losing it.
+
 Two functions: :func:`ray_triangle_setup_py` computes the per-ray constants
 ``(kx, ky, kz, Sx, Sy, Sz)`` once; :func:`ray_triangle_py` tests one triangle
 stored as a row ``[Ax, Ay, Az, Bx, By, Bz, Cx, Cy, Cz]`` of a float32 array. The
@@ -27,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from rayaccel._jit import cpu_inline
+from rayaccel.kernels.real import as_real_like, edge_function
 
 F32_ONE = np.float32(1.0)
 F32_ZERO = np.float32(0.0)
@@ -117,18 +125,19 @@ def ray_triangle_py(tri, row, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, tmin, tmax)
     Cy = Cky - Sy * Ckz
     # Scaled barycentrics: 2D edge functions in float64. Products of two float32 are
     # exact there, so each sign is exact and a shared edge's function is exactly
-    # antisymmetric, with or without FMA contraction (see the module docstring).
-    U64 = np.float64(Cx) * np.float64(By) - np.float64(Cy) * np.float64(Bx)
-    V64 = np.float64(Ax) * np.float64(Cy) - np.float64(Ay) * np.float64(Cx)
-    W64 = np.float64(Bx) * np.float64(Ay) - np.float64(By) * np.float64(Ax)
+    # antisymmetric, with or without FMA contraction; float64 rows round both products
+    # alike (see the module docstring).
+    U64 = edge_function(Cx, By, Cy, Bx)
+    V64 = edge_function(Ax, Cy, Ay, Cx)
+    W64 = edge_function(Bx, Ay, By, Ax)
     # Edge test without backface culling.
     if (U64 < 0.0 or V64 < 0.0 or W64 < 0.0) and (U64 > 0.0 or V64 > 0.0 or W64 > 0.0):
         return F32_INF, F32_ZERO, F32_ZERO
     if U64 + V64 + W64 == 0.0:
         return F32_INF, F32_ZERO, F32_ZERO
-    U = np.float32(U64)
-    V = np.float32(V64)
-    W = np.float32(W64)
+    U = as_real_like(U64, Cx)
+    V = as_real_like(V64, Cx)
+    W = as_real_like(W64, Cx)
     det = U + V + W
     # Scaled hit distance; divide once.
     T = U * (Sz * Akz) + V * (Sz * Bkz) + W * (Sz * Ckz)

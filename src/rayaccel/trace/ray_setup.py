@@ -11,14 +11,22 @@ Boxes are interleaved ``(lo_x, hi_x, lo_y, hi_y, lo_z, hi_z)``; the near plane o
 axis ``a`` is column ``2a`` when the direction is non-negative on ``a`` and
 ``2a + 1`` otherwise. The offsets ``nx, ny, nz`` and ``fx, fy, fz`` encode that choice
 so a kernel reads ``box[row, col + nx]`` without a branch.
+
+Precision: the functions are generic. Float64 rays (``precision="float64"``) compile
+float64 specialisations: every per-ray constant, the hit interval and the slab
+distances against the float32 boxes are then float64, and ``t_hit`` starts one float64
+ulp above ``tmax`` (:func:`rayaccel.kernels.real.next_up`). The culling pad keeps its
+float32-sized slack (``2^-20`` of the scene's extent), far above float64 rounding, so it
+stays conservative.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from rayaccel._jit import cpu_inline, next_up_float32
+from rayaccel._jit import cpu_inline
 from rayaccel.kernels.aabb import culling_pad, ray_box_entry
+from rayaccel.kernels.real import next_up
 from rayaccel.kernels.triangle import ray_triangle_setup
 
 ONE32 = np.float32(1.0)
@@ -43,7 +51,7 @@ def ray_prologue_py(origin, direction, tmin, tmax, r, root_box):
     dy = direction[r, 1]
     dz = direction[r, 2]
     t_lo = tmin[r]
-    t_hit = next_up_float32(tmax[r])
+    t_hit = next_up(tmax[r])
     valid = (
         t_lo <= tmax[r]
         and not (dx == 0 and dy == 0 and dz == 0)
@@ -74,8 +82,6 @@ def ray_prologue_py(origin, direction, tmin, tmax, r, root_box):
         valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
         kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
     )  # fmt: skip
-
-
 
 
 def root_entry_py(root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, lo, hi):
