@@ -177,8 +177,29 @@ def _kernel_dispatchers():
     return found
 
 
+def _precision_of(signature) -> str:
+    """``"float64"`` if a float64 array is among a kernel's arguments (or their tuples)."""
+    pending = list(signature)
+    while pending:
+        arg = pending.pop()
+        if isinstance(arg, numba.types.BaseTuple):
+            pending.extend(arg.types)
+        elif isinstance(arg, numba.types.Array) and arg.dtype == numba.types.float64:
+            return "float64"
+    return "float32"
+
+
+def _too_many(signatures) -> bool:
+    """More than one signature per precision (float64 meshes compile their own, by design)."""
+    return len(signatures) > len({_precision_of(s) for s in signatures})
+
+
 def test_signature_discipline(full):
     """Float64, int, Fortran and strided inputs are coerced: one signature per kernel.
+
+    Per precision: float64 meshes (``precision="float64"``, ``test_float64.py``) compile
+    a float64 specialisation of the kernels they run, so when both run in one session
+    a kernel may hold one float32 and one float64 signature, never two of one precision.
 
     Inputs are coerced before any kernel, so the parallel batch size runs through each
     structure's default traversal (and every traversal with ``--full``).
@@ -210,9 +231,10 @@ def test_signature_discipline(full):
                                     traversal=traversal, stats=stats)
     for query, stats, parallel in itertools.product((0, 1), (False, True), (False, True)):
         kernel = trace_kernel(query, stats, parallel)
-        assert len(kernel.signatures) == 1, (query, stats, parallel, kernel.signatures)
+        assert len(kernel.signatures) >= 1, (query, stats, parallel)
+        assert not _too_many(kernel.signatures), (query, stats, parallel, kernel.signatures)
     # Every other kernel in the package: at most one signature (after the whole session).
     kernels = _kernel_dispatchers()
     assert "rayaccel.bvh.layouts.bvh2._check_topology" in kernels
-    many = {name: d.signatures for name, d in kernels.items() if len(d.signatures) > 1}
+    many = {name: d.signatures for name, d in kernels.items() if _too_many(d.signatures)}
     assert not many, f"kernels compiled for several signatures: {many}"

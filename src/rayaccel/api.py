@@ -8,6 +8,11 @@ registered traversal by key; extra keywords are that traversal's options::
     accel = rayaccel.build(mesh, "bvh2.binned_sah", max_leaf_size=4)
     hits = accel.intersect(origins, directions, stats=True)
     blocked = accel.occluded(origins, directions, tmin=1e-4, tmax=1.0)
+
+Precision is the mesh's: ``TriangleMesh(vertices, faces, precision="float64")`` gives an
+accel whose queries take and return float64 (rays, ``t``, ``u``, ``v``) over the same
+float32 structure, its boxes widened to contain the float64 triangles
+(:mod:`rayaccel.bvh.precision`). Only BVH builders (``bvh2.*``) accept float64 meshes.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import numpy as np
 from rayaccel import chunked, config, persist, registry
 from rayaccel import refit as refitting
 from rayaccel.bvh import geometry
+from rayaccel.bvh.precision import conservative_bvh2
 from rayaccel.counters import counters_to_dict, empty_counters
 from rayaccel.dtypes import BoolArray, FloatArray, IntArray
 from rayaccel.errors import AccelFileError, InvalidInputError, UnknownVariantError
@@ -44,6 +50,7 @@ class Accel:
     key : str
         The builder's registry key.
     mesh : TriangleMesh
+        Its ``precision`` is the accel's (:attr:`precision`).
     structure : Structure
         The canonical structure the builder made (:class:`rayaccel.trace.structure.Structure`).
     options : object
@@ -83,6 +90,11 @@ class Accel:
     def __repr__(self) -> str:
         return f"Accel({self.key!r}, {self.mesh!r})"
 
+    @property
+    def precision(self) -> str:
+        """``"float32"`` or ``"float64"``: the mesh's, and that of the rays and hits of queries."""
+        return self.mesh.precision
+
     # -- queries -------------------------------------------------------------------------------
 
     def trace(
@@ -99,7 +111,8 @@ class Accel:
         Parameters
         ----------
         rays : RayBatch
-            The rays; their ``tmin``/``tmax`` bound each search.
+            The rays; their ``tmin``/``tmax`` bound each search. A batch of the other
+            precision is converted to the accel's (:attr:`precision`) first.
         query : {"closest", "any"}
             ``"any"`` stops at the first hit found (``prim`` is some hit, not the closest).
         traversal : str, optional
@@ -112,6 +125,10 @@ class Accel:
         """
         if query not in QUERY_KINDS:
             raise InvalidInputError(f"query: expected one of {QUERY_KINDS}, got {query!r}")
+        if not isinstance(stats, (bool, np.bool_)):
+            raise InvalidInputError(f"stats: expected True or False, got {stats!r}")
+        if traversal is not None and not isinstance(traversal, str):
+            raise InvalidInputError(f"traversal: expected a registry key, got {traversal!r}")
         if not isinstance(rays, RayBatch):
             raise InvalidInputError(f"rays: expected a RayBatch, got {type(rays).__name__}")
         key = traversal or registry.default_traversal(self.structure_name)
@@ -123,7 +140,7 @@ class Accel:
             )
         opts = variant.make_options(options)
         if rays.n_rays == 0:
-            empty = HitBatch.empty(0)
+            empty = HitBatch.empty(0, self.precision)
             if stats:
                 return HitBatch(
                     empty.t,
@@ -136,6 +153,7 @@ class Accel:
         with self._lock:
             # One consistent snapshot: refit() swaps the three together.
             cache, structure, mesh = self._cache, self.structure, self.mesh
+        rays = rays.astype(mesh.precision)
         return variant.func(  # type: ignore[no-any-return]
             structure, mesh, rays, query=query, stats=stats, options=opts, cache=cache
         )
@@ -156,11 +174,11 @@ class Accel:
         Parameters
         ----------
         origins, directions : (n, 3) array_like of float, or Dask arrays
-            Coerced once to float32. Directions need not be normalised; a zero or
-            non-finite direction is a miss. Beyond ``rayaccel.config.RAY_BUDGET``
-            bytes of copies the rays are traced in chunks; Dask arrays give Dask
-            arrays in the result, traced block by block when computed
-            (:mod:`rayaccel.chunked`).
+            Coerced once to float32 (float64 for a float64 accel). Directions need not
+            be normalised; a zero or non-finite direction is a miss. Beyond
+            ``rayaccel.config.RAY_BUDGET`` bytes of copies the rays are traced in chunks;
+            Dask arrays give Dask arrays in the result, traced block by block when
+            computed (:mod:`rayaccel.chunked`).
         tmin, tmax : float or (n,) array_like of float
             Hits are accepted in ``[tmin, tmax]``; ``tmin > tmax`` is a miss.
         traversal : str, optional
@@ -173,7 +191,8 @@ class Accel:
         Returns
         -------
         HitBatch
-            ``t`` (inf on a miss), ``prim`` (-1 on a miss), barycentrics ``u, v``.
+            ``t`` (inf on a miss), ``prim`` (-1 on a miss), barycentrics ``u, v``; float32,
+            or float64 for a float64 accel.
         """
         return self._query(origins, directions, tmin, tmax, "closest", traversal, stats, options)
 
@@ -211,15 +230,17 @@ class Accel:
             return chunked.trace_dask(self, origins, directions, tmin, tmax, query=query,
                                       traversal=traversal, options=options)  # fmt: skip
         n = chunked.count_rays(origins, directions)
-        chunk = chunked.rays_per_chunk(config.RAY_BUDGET)
+        # Float64 rays take twice the bytes of the float32 copies the budget counts.
+        budget = config.RAY_BUDGET // (2 if self.precision == "float64" else 1)
+        chunk = chunked.rays_per_chunk(budget)
         if n is not None and n > chunk:
             return chunked.trace_in_chunks(
                 lambda rays: self.trace(
                     rays, query=query, traversal=traversal, stats=stats, **options
                 ),
-                origins, directions, tmin, tmax, n, chunk,
+                origins, directions, tmin, tmax, n, chunk, self.precision,
             )  # fmt: skip
-        rays = RayBatch(origins, directions, tmin, tmax)
+        rays = RayBatch(origins, directions, tmin, tmax, precision=self.precision)
         return self.trace(rays, query=query, traversal=traversal, stats=stats, **options)
 
     def traversal_state(
@@ -392,6 +413,7 @@ class Accel:
             "build_ms": round(self.build_ms, 3),
             "step_ms": {k: round(v, 3) for k, v in self.step_ms.items()},
             "n_prims": self.mesh.n_triangles,
+            "precision": self.precision,
         }
         info.update(s.info(inner_cost, prim_cost))
         if "n_refs" in info:
@@ -537,6 +559,10 @@ class Accel:
         self._lock = threading.Lock()
 
 
+#: Structures whose builders accept float64 meshes (boxes widened by one float32 ulp).
+FLOAT64_STRUCTURES = ("bvh2",)
+
+
 def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
     """Build an acceleration structure over ``mesh`` with the registered builder ``key``.
 
@@ -565,7 +591,16 @@ def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
         Unknown key or option, with suggestions.
     InvalidInputError
         ``mesh`` is not a TriangleMesh, an option is out of range, the key chains more
-        than one pre-build step, or the builder cannot take pre-built references.
+        than one pre-build step, the builder cannot take pre-built references, or
+        the mesh is float64 and the builder's structure is not one of
+        :data:`FLOAT64_STRUCTURES`.
+
+    Notes
+    -----
+    A float64 mesh (``TriangleMesh(..., precision="float64")``) is built over its float32
+    rounding like any other; the tree's boxes are then widened to contain the float64
+    triangles (:func:`rayaccel.bvh.precision.conservative_bvh2`, included in
+    ``build_ms``), and every traversal of the structure traces float64 rays.
     """
     if not isinstance(mesh, TriangleMesh):
         raise InvalidInputError(
@@ -574,6 +609,13 @@ def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
         )
     key = key or registry.DEFAULT_BUILD_KEY
     variant, opts, before, after = _resolve_chain(key, options)
+    if mesh.precision == "float64" and variant.structure not in FLOAT64_STRUCTURES:
+        raise InvalidInputError(
+            f"{key}: a {variant.structure!r} cannot hold a float64 mesh (its split planes "
+            "and cells are placed between float32 triangles); precision='float64' is "
+            f"supported by the {', '.join(FLOAT64_STRUCTURES)} builders: "
+            + ", ".join(registry.keys("builder", FLOAT64_STRUCTURES[0]))
+        )
     start = time.perf_counter()
     step_ms: dict[str, float] = {}
     with config.parallel_section():
@@ -592,6 +634,8 @@ def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
             step_start = time.perf_counter()
             structure = step.func(structure, mesh, step_opt)
             step_ms[step.key] = (time.perf_counter() - step_start) * 1e3
+        # Float64 meshes: every box must contain the float64 triangles (bvh/precision.py).
+        structure = conservative_bvh2(structure, mesh)
     build_ms = (time.perf_counter() - start) * 1e3
     accel = Accel(key, mesh, structure, opts, build_ms, step_ms)
     accel.step_options = {s.key.split("+", 1)[1]: o for s, o in (*before, *after)}

@@ -73,18 +73,21 @@ def trace_in_chunks(
     tmax: Any,
     n: int,
     chunk: int,
+    precision: str = "float32",
 ) -> HitBatch:
     """Trace ``n`` rays ``chunk`` at a time with ``trace``; return all hits in input order.
 
     ``origins``/``directions`` are (n, 3) (or one of them (3,)), ``tmin``/``tmax``
-    scalars or (n,); each chunk is validated by ``RayBatch`` as a whole batch would be.
+    scalars or (n,); each chunk is validated by ``RayBatch`` as a whole batch would be,
+    in ``precision`` (the accel's).
     """
     tmin = _per_ray(tmin, n)
     tmax = _per_ray(tmax, n)
-    t = np.empty(n, dtype=REAL)
+    real = np.float64 if precision == "float64" else REAL
+    t = np.empty(n, dtype=real)
     prim = np.empty(n, dtype=INDEX)
-    u = np.empty(n, dtype=REAL)
-    v = np.empty(n, dtype=REAL)
+    u = np.empty(n, dtype=real)
+    v = np.empty(n, dtype=real)
     stats: dict[str, Any] | None = None
     for begin in range(0, n, chunk):
         end = min(n, begin + chunk)
@@ -94,6 +97,7 @@ def trace_in_chunks(
                 _rows(directions, begin, end),
                 _rows(tmin, begin, end),
                 _rows(tmax, begin, end),
+                precision=precision,
             )
         except InvalidInputError as exc:
             raise InvalidInputError(f"rays {begin}..{end - 1}: {exc}") from exc
@@ -173,11 +177,14 @@ def trace_dask(
     # One key for this Accel: every block's task depends on it, so it is sent once
     token = f"rayaccel-accel-{accel.key}-{accel.mesh.digest()[:16]}-{id(accel):x}"
     shared = delayed(accel, name=token, pure=True)
-    fields = np.dtype([("t", REAL), ("prim", INDEX), ("u", REAL), ("v", REAL)])
+    real = np.float64 if accel.precision == "float64" else REAL
+    fields = np.dtype([("t", real), ("prim", INDEX), ("u", real), ("v", real)])
 
     def trace_block(o_block: Any, d_block: Any, lo_block: Any, hi_block: Any, acc: Any) -> Any:
         hits = acc.trace(
-            RayBatch(o_block, d_block, _column(lo_block), _column(hi_block)),
+            RayBatch(
+                o_block, d_block, _column(lo_block), _column(hi_block), precision=acc.precision
+            ),
             query=query,
             traversal=traversal,
             **options,

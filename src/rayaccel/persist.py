@@ -7,10 +7,11 @@ never runs code from the file. It holds:
 - ``header``: UTF-8 JSON (stored as a uint8 array) with the format name and
   :data:`FORMAT_VERSION`, the rayaccel version that wrote it, the builder key and
   its options (and each build step's), the build and step times, the SAH cost at
-  build time, the mesh's name and size, the structure's class with every field
+  build time, the mesh's name, size and precision, the structure's class with every field
   (arrays by name, dtype and shape; scalars and small dicts by value; nested
   structures recursively), and a SHA-256 content hash;
-- ``mesh.vertices``, ``mesh.faces`` and one array per array field of the structure
+- ``mesh.vertices`` (float64 for a float64 mesh), ``mesh.faces`` and one array per
+  array field of the structure
   (``structure.node_lo``, ``structure.top.cell_start`` …).
 
 The structure is taken apart by dataclass introspection, so every structure class of
@@ -194,7 +195,9 @@ def save(
     OSError
         The file cannot be written (the destination is then unchanged).
     """
-    arrays: dict[str, np.ndarray] = {"mesh.vertices": mesh.vertices, "mesh.faces": mesh.faces}
+    # A float64 mesh is saved with its float64 vertices (its float32 ones are their rounding).
+    vertices = mesh.vertices if mesh.vertices64 is None else mesh.vertices64
+    arrays: dict[str, np.ndarray] = {"mesh.vertices": vertices, "mesh.faces": mesh.faces}
     layout = _flatten(structure, "structure", arrays)
     header: dict[str, Any] = {
         "format": FORMAT,
@@ -212,6 +215,7 @@ def save(
             "name": mesh.name,
             "n_vertices": mesh.n_vertices,
             "n_triangles": mesh.n_triangles,
+            "precision": mesh.precision,
             "digest": mesh.digest(),
         },
         "layout": layout,
@@ -347,7 +351,12 @@ def load(path: str | os.PathLike[str]) -> SavedAccel:
         raise _fail(file, "content hash mismatch: the file was altered or corrupted; refusing it")
     try:
         mesh_info = header["mesh"]
-        mesh = TriangleMesh(arrays["mesh.vertices"], arrays["mesh.faces"], str(mesh_info["name"]))
+        mesh = TriangleMesh(
+            arrays["mesh.vertices"],
+            arrays["mesh.faces"],
+            str(mesh_info["name"]),
+            precision=str(mesh_info.get("precision", "float32")),
+        )
         structure = _rebuild(file, header["layout"], arrays, "structure")
         class_name = header["layout"]["class"]
         structure_name = str(header["structure"])

@@ -36,6 +36,7 @@ import numpy as np
 
 from rayaccel.bvh.builders.refit_vertices import refit_bvh2, sah_of
 from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.precision import conservative_bvh2
 from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -97,7 +98,7 @@ def check_ratio(rebuild_if_worse: object) -> float | None:
 
 
 def refitted_mesh(mesh: TriangleMesh, new_vertices: object) -> TriangleMesh:
-    """Return ``mesh`` with ``new_vertices`` (same faces and name), validated.
+    """Return ``mesh`` with ``new_vertices`` (same faces, name and precision), validated.
 
     Raises
     ------
@@ -115,7 +116,7 @@ def refitted_mesh(mesh: TriangleMesh, new_vertices: object) -> TriangleMesh:
             f"(the mesh's vertex count), got {array.shape}"
         )
     try:
-        return TriangleMesh(array, mesh.faces, mesh.name)
+        return TriangleMesh(array, mesh.faces, mesh.name, precision=mesh.precision)
     except InvalidInputError as exc:
         message = str(exc)
         if message.startswith("vertices:"):
@@ -184,7 +185,11 @@ def refit_structure(
     refitted = None
     if can_refit(structure):
         refit_start = time.perf_counter()
-        refitted = refit_bvh2(structure, new_mesh.vertices, new_mesh.faces)
+        if new_mesh.precision == "float64":
+            # Refitted and widened to contain the float64 triangles (bvh/precision.py).
+            refitted = conservative_bvh2(structure, new_mesh)
+        else:
+            refitted = refit_bvh2(structure, new_mesh.vertices, new_mesh.faces)
         report["refit_ms"] = (time.perf_counter() - refit_start) * 1e3
         sah_refit = sah_of(refitted)
         report["sah_refit"] = sah_refit

@@ -1,5 +1,8 @@
 """Batches of rays and of their hits, as flat float32/int32 arrays (STYLE §3).
 
+Both take ``precision="float64"`` for meshes with huge coordinates: their float arrays
+are then float64 (:class:`rayaccel.scene.mesh.TriangleMesh`, ``precision``).
+
 A :class:`RayBatch` is what every traversal takes: origins and directions
 ``(n, 3)`` float32 and per-ray ``tmin``/``tmax`` ``(n,)`` float32. Directions need
 not be normalised; ``t`` is measured in units of the direction's length. Rays with
@@ -21,11 +24,19 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from rayaccel.dtypes import INDEX, REAL, BoolArray, FloatArray, IntArray
+from rayaccel.dtypes import (
+    INDEX,
+    REAL,
+    BoolArray,
+    FloatArray,
+    IntArray,
+    RealArray,
+    check_precision,
+)
 from rayaccel.errors import InvalidInputError
 
 
-def _as_vectors(name: str, value: object, n: int | None) -> FloatArray:
+def _as_vectors(name: str, value: object, n: int | None, dtype: type = REAL) -> FloatArray:
     try:
         array = np.asarray(value)
     except (TypeError, ValueError) as exc:
@@ -38,10 +49,10 @@ def _as_vectors(name: str, value: object, n: int | None) -> FloatArray:
         raise InvalidInputError(f"{name}: expected a float array, got dtype {array.dtype}")
     if n is not None and array.shape[0] != n:
         raise InvalidInputError(f"{name}: expected {n} rows to match origins, got {array.shape[0]}")
-    return np.ascontiguousarray(array, dtype=REAL)
+    return np.ascontiguousarray(array, dtype=dtype)
 
 
-def _as_interval(name: str, value: object, n: int) -> FloatArray:
+def _as_interval(name: str, value: object, n: int, dtype: type = REAL) -> FloatArray:
     try:
         array = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -54,7 +65,7 @@ def _as_interval(name: str, value: object, n: int) -> FloatArray:
         raise InvalidInputError(f"{name}: expected a scalar or shape ({n},), got {array.shape}")
     if np.isnan(array).any():
         raise InvalidInputError(f"{name}: contains NaN at index {int(np.argmax(np.isnan(array)))}")
-    return np.ascontiguousarray(array, dtype=REAL)
+    return np.ascontiguousarray(array, dtype=dtype)
 
 
 @dataclass(frozen=True, slots=True, eq=False, init=False)
@@ -64,10 +75,13 @@ class RayBatch:
     Parameters
     ----------
     origin, direction : (n, 3) array_like of float
-        Coerced once to C-contiguous float32. A single (3,) direction or origin
-        is broadcast to the other's length.
+        Coerced once to C-contiguous float32 (float64 with ``precision="float64"``).
+        A single (3,) direction or origin is broadcast to the other's length.
     tmin, tmax : float or (n,) array_like of float, optional
         Ray interval; scalars are broadcast. Defaults ``0`` and ``inf``.
+    precision : {"float32", "float64"}
+        The dtype of every array. An accel converts a batch to its mesh's precision
+        (:attr:`rayaccel.scene.mesh.TriangleMesh.precision`) before tracing it.
     """
 
     origin: FloatArray
@@ -81,7 +95,10 @@ class RayBatch:
         direction: npt.ArrayLike,
         tmin: npt.ArrayLike | None = None,
         tmax: npt.ArrayLike | None = None,
+        *,
+        precision: str = "float32",
     ) -> None:
+        dtype = np.float64 if check_precision(precision) == "float64" else REAL
         origin_raw = np.asarray(origin)
         direction_raw = np.asarray(direction)
         n = None
@@ -89,14 +106,27 @@ class RayBatch:
             n = origin_raw.shape[0]
         elif direction_raw.ndim == 2:
             n = direction_raw.shape[0]
-        origin_f32 = _as_vectors("origins", origin_raw, n)
+        origin_f32 = _as_vectors("origins", origin_raw, n, dtype)
         n = origin_f32.shape[0]
-        direction_f32 = _as_vectors("directions", direction_raw, n)
+        direction_f32 = _as_vectors("directions", direction_raw, n, dtype)
         # The dataclass is frozen: fields are set once, here, through object.__setattr__.
         object.__setattr__(self, "origin", origin_f32)
         object.__setattr__(self, "direction", direction_f32)
-        object.__setattr__(self, "tmin", _as_interval("tmin", 0.0 if tmin is None else tmin, n))
-        object.__setattr__(self, "tmax", _as_interval("tmax", np.inf if tmax is None else tmax, n))
+        lo = _as_interval("tmin", 0.0 if tmin is None else tmin, n, dtype)
+        hi = _as_interval("tmax", np.inf if tmax is None else tmax, n, dtype)
+        object.__setattr__(self, "tmin", lo)
+        object.__setattr__(self, "tmax", hi)
+
+    @property
+    def precision(self) -> str:
+        """``"float32"`` or ``"float64"``: the dtype of every array of the batch."""
+        return str(self.origin.dtype)
+
+    def astype(self, precision: str) -> RayBatch:
+        """Return this batch in ``precision`` (itself when it already is)."""
+        if check_precision(precision) == self.precision:
+            return self
+        return RayBatch(self.origin, self.direction, self.tmin, self.tmax, precision=precision)
 
     def __len__(self) -> int:
         return int(self.origin.shape[0])
@@ -126,6 +156,7 @@ class RayBatch:
             np.concatenate([b.direction for b in batches]),
             np.concatenate([b.tmin for b in batches]),
             np.concatenate([b.tmax for b in batches]),
+            precision=batches[0].precision,
         )
 
     def subset(
@@ -144,7 +175,11 @@ class RayBatch:
             A new batch of the selected rays (copies of the rows).
         """
         return RayBatch(
-            self.origin[index], self.direction[index], self.tmin[index], self.tmax[index]
+            self.origin[index],
+            self.direction[index],
+            self.tmin[index],
+            self.tmax[index],
+            precision=self.precision,
         )
 
 
@@ -154,20 +189,20 @@ class HitBatch:
 
     Attributes
     ----------
-    t : (n,) float32
+    t : (n,) float32 (float64 for float64 rays)
         Hit distance in units of the ray direction; ``inf`` on a miss.
     prim : (n,) int32
         Index of the hit triangle in the mesh; ``-1`` on a miss.
-    u, v : (n,) float32
+    u, v : (n,) float32 (float64 for float64 rays)
         Barycentric coordinates of the hit on the triangle (0 on a miss).
     stats : dict of str to (n,) int32, or None
         Per-ray traversal counters by name, when requested.
     """
 
-    t: FloatArray
+    t: RealArray
     prim: IntArray
-    u: FloatArray
-    v: FloatArray
+    u: RealArray
+    v: RealArray
     stats: dict[str, IntArray] | None = None
 
     def __len__(self) -> int:
@@ -178,17 +213,19 @@ class HitBatch:
         """``(n,)`` bool: whether each ray hit something."""
         return self.prim >= 0
 
-    def points(self, rays: RayBatch) -> FloatArray:
-        """Return the ``(n, 3)`` float32 hit points ``o + t·d`` (NaN on a miss)."""
-        t = np.where(self.hit, self.t, np.nan).astype(REAL)
-        return (rays.origin + t[:, None] * rays.direction).astype(REAL)
+    def points(self, rays: RayBatch) -> RealArray:
+        """Return the ``(n, 3)`` hit points ``o + t·d`` (NaN on a miss), in the rays' dtype."""
+        dtype = rays.origin.dtype
+        t = np.where(self.hit, self.t, np.nan).astype(dtype)
+        return (rays.origin + t[:, None] * rays.direction).astype(dtype)
 
     @staticmethod
-    def empty(n: int) -> HitBatch:
-        """Return ``n`` misses."""
+    def empty(n: int, precision: str = "float32") -> HitBatch:
+        """Return ``n`` misses (``t``, ``u``, ``v`` in ``precision``)."""
+        dtype = np.float64 if check_precision(precision) == "float64" else REAL
         return HitBatch(
-            t=np.full(n, np.inf, dtype=REAL),
+            t=np.full(n, np.inf, dtype=dtype),
             prim=np.full(n, -1, dtype=INDEX),
-            u=np.zeros(n, dtype=REAL),
-            v=np.zeros(n, dtype=REAL),
+            u=np.zeros(n, dtype=dtype),
+            v=np.zeros(n, dtype=dtype),
         )

@@ -5,6 +5,13 @@ A :class:`TriangleMesh` holds a float32 ``(V, 3)`` vertex array and an int32
 non-finite vertices are rejected with the offending index, face indices must lie
 in ``[0, V)``, and a mesh must have at least one triangle. Zero-area triangles
 are kept (a correct ray/triangle test never reports a hit on them).
+
+Precision. ``precision="float64"`` (for scenes with huge coordinates: geospatial, CAD)
+keeps the float64 positions in :attr:`TriangleMesh.vertices64`; :meth:`hit_rows`, which
+the intersection kernels test, are then float64 and traversals compile float64
+specialisations (rays and hits in float64 too). Builders still build over the float32
+rounding in :attr:`TriangleMesh.vertices`, and the BVH's boxes are then widened to
+contain the float64 triangles (:mod:`rayaccel.bvh.precision`).
 """
 
 from __future__ import annotations
@@ -15,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray, check_precision
 from rayaccel.errors import InvalidInputError
 
 
@@ -79,22 +86,50 @@ class TriangleMesh:
         Vertex indices of each triangle; coerced to int32, each in ``[0, V)``; ``F >= 1``.
     name : str, optional
         A label used in reports.
+    precision : {"float32", "float64"}
+        ``"float64"`` also keeps the vertices in float64 (:attr:`vertices64`): the
+        triangles are then intersected in float64 and the accel traces float64 rays
+        (BVH builders only; see the module docstring).
+
+    Attributes
+    ----------
+    vertices : (V, 3) float32
+        The positions builders bound: the float32 rounding of :attr:`vertices64` for a
+        float64 mesh.
+    vertices64 : (V, 3) float64 or None
+        The exact positions of a float64 mesh; None for a float32 mesh.
 
     Raises
     ------
     InvalidInputError
         Wrong shapes, non-finite vertices (the index is named), out-of-range
-        indices (the face is named) or an empty face list.
+        indices (the face is named), an empty face list or an unknown precision.
     """
 
     vertices: FloatArray
     faces: IntArray
     name: str
+    precision: str
+    vertices64: npt.NDArray[np.float64] | None
     #: :meth:`digest`, once computed (the arrays are read-only, so it never changes).
     _digest: str | None = field(default=None, repr=False)
 
-    def __init__(self, vertices: npt.ArrayLike, faces: npt.ArrayLike, name: str = "mesh") -> None:
+    def __init__(
+        self,
+        vertices: npt.ArrayLike,
+        faces: npt.ArrayLike,
+        name: str = "mesh",
+        *,
+        precision: str = "float32",
+    ) -> None:
+        check_precision(precision)
         coerced = _coerce_vertices(vertices)
+        exact = None
+        if precision == "float64":
+            exact = np.ascontiguousarray(np.asarray(vertices), dtype=np.float64)
+            exact.flags.writeable = False
+        object.__setattr__(self, "precision", precision)
+        object.__setattr__(self, "vertices64", exact)
         # The dataclass is frozen: fields are set once, here, through object.__setattr__.
         object.__setattr__(self, "vertices", coerced)
         object.__setattr__(self, "faces", _coerce_faces(faces, coerced.shape[0]))
@@ -117,8 +152,10 @@ class TriangleMesh:
         """Return the ``(F, 3, 3)`` float32 corner positions of every triangle."""
         return np.ascontiguousarray(self.vertices[self.faces])
 
-    def hit_rows(self) -> FloatArray:
-        """Return the ``(F, 9)`` float32 corner rows the intersection kernels test.
+    def hit_rows(self) -> RealArray:
+        """Return the ``(F, 9)`` corner rows the intersection kernels test.
+
+        float32, or float64 (from :attr:`vertices64`) for a float64 mesh.
 
         A triangle whose area is exactly zero in float64 (repeated corners, collinear
         corners) is collapsed to its first corner. The watertight test then computes
@@ -127,11 +164,11 @@ class TriangleMesh:
         Bounding boxes are built from :meth:`triangles`, so they still enclose the
         original corners.
         """
-        tri = self.triangles()
+        tri = self.triangles() if self.vertices64 is None else self.vertices64[self.faces]
         wide = tri.astype(np.float64)
         cross = np.cross(wide[:, 1] - wide[:, 0], wide[:, 2] - wide[:, 0])
         degenerate = ~np.any(cross != 0.0, axis=1)
-        rows: FloatArray = tri.reshape(-1, 9).copy()
+        rows: RealArray = tri.reshape(-1, 9).copy()
         rows[degenerate, 3:6] = rows[degenerate, 0:3]
         rows[degenerate, 6:9] = rows[degenerate, 0:3]
         return rows
@@ -166,7 +203,10 @@ class TriangleMesh:
         """
         if self._digest is None:
             h = hashlib.sha256()
-            for array in (self.vertices, self.faces):
+            arrays: list[np.ndarray] = [self.vertices, self.faces]
+            if self.vertices64 is not None:
+                arrays.append(self.vertices64)
+            for array in arrays:
                 h.update(f"{array.dtype.str}{array.shape}".encode())
                 h.update(np.ascontiguousarray(array).tobytes())
             object.__setattr__(self, "_digest", h.hexdigest())
@@ -174,7 +214,8 @@ class TriangleMesh:
         return self._digest
 
     def __repr__(self) -> str:
+        extra = "" if self.precision == "float32" else f", precision={self.precision!r}"
         return (
             f"TriangleMesh(name={self.name!r}, n_triangles={self.n_triangles}, "
-            f"n_vertices={self.n_vertices})"
+            f"n_vertices={self.n_vertices}{extra})"
         )

@@ -93,7 +93,8 @@ def run_trace(
     """
     constant = query_constant(query)
     n = rays.n_rays
-    hits = HitBatch.empty(n)
+    # Hits in the rays' precision: float64 rays compile float64 kernels (kernels/real.py).
+    hits = HitBatch.empty(n, rays.precision)
     counters = empty_counters(n, stats)
     parallel = n >= PARALLEL_MIN_RAYS
     kernel = kernel_for(constant, bool(stats), parallel)

@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
-from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray
 from rayaccel.errors import StructureInvariantError
 
 #: Deepest tree any builder may emit; traversal stacks hold STACK_SIZE >= MAX_DEPTH entries.
@@ -332,7 +332,6 @@ class PackedArrays(NamedTuple):
 CACHE_LINE = 64
 
 
-
 def aligned_zeros(shape: tuple[int, ...], dtype: type, alignment: int) -> np.ndarray:
     """Return a zeroed C-contiguous array whose data starts on an ``alignment``-byte boundary.
 
@@ -351,7 +350,7 @@ class PackedBvh2:
     rows: np.ndarray  # (n_inner, 16) float32 buffer
     leaf_first: IntArray
     leaf_count: IntArray
-    tri: FloatArray
+    tri: RealArray
     tri_prim: IntArray
     root_box: FloatArray
     root_ref: IntArray
@@ -412,15 +411,16 @@ def _pack_kernel(bvh, rows, ref_of_node, leaf_first, leaf_count):
         ints[row, 15] = 0
 
 
-def pack_bvh2(bvh: Bvh2, hit_rows: FloatArray) -> PackedBvh2:
+def pack_bvh2(bvh: Bvh2, hit_rows: RealArray) -> PackedBvh2:
     """Derive the packed traversal layout from a canonical BVH.
 
     Parameters
     ----------
     bvh : Bvh2
         The canonical tree; it is read, not changed.
-    hit_rows : (F, 9) float32
-        ``TriangleMesh.hit_rows()`` of the mesh the tree was built over.
+    hit_rows : (F, 9) float32 or float64
+        ``TriangleMesh.hit_rows()`` of the mesh the tree was built over; the gathered
+        ``tri`` keeps their dtype (float64 for a float64 mesh, traced in float64).
     """
     n = bvh.n_nodes
     n_leaves = bvh.n_leaves
@@ -430,7 +430,8 @@ def pack_bvh2(bvh: Bvh2, hit_rows: FloatArray) -> PackedBvh2:
     leaf_first = np.empty(n_leaves, dtype=INDEX)
     leaf_count = np.empty(n_leaves, dtype=INDEX)
     _pack_kernel(bvh.arrays(), rows, ref_of_node, leaf_first, leaf_count)
-    tri = np.ascontiguousarray(hit_rows[bvh.prim_index], dtype=REAL)
+    rows_dtype = np.float64 if hit_rows.dtype == np.float64 else REAL
+    tri = np.ascontiguousarray(hit_rows[bvh.prim_index], dtype=rows_dtype)
     root_box = np.empty(6, dtype=REAL)
     root_box[0::2] = bvh.node_lo[0]
     root_box[1::2] = bvh.node_hi[0]
