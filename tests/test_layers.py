@@ -30,6 +30,7 @@ LAYERS: dict[str, int] = {
     "_hugepages": 0,  # not in STYLE §2: huge-page advice for arrays allocated in kernels
     "_atomic": 0,  # not in STYLE §2 yet: stdlib-only atomic file writes
     "_work": 0,  # not in STYLE §2: work distribution of parallel kernels (shared counter)
+    "validation": 0,  # not in STYLE §2: argument checks shared by every entry point
     "kernels": 1,
     "scene": 2, "rays": 2,
     "trace": 3,  # not in STYLE §2 yet: what every family's traversals share

@@ -9,10 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import inspect
+import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
+
+import numpy as np
 
 from rayaccel.errors import InvalidInputError, UnknownVariantError
 
@@ -90,10 +94,60 @@ class Variant:
                 raise UnknownVariantError(
                     f"{self.key}: unknown option {name!r}{hint} (options: {known})"
                 )
+        hints = _option_types(self.options)
+        coerced = {name: coerce_option(self.key, name, value, hints.get(name))
+                   for name, value in values.items()}  # fmt: skip
         try:
-            return self.options(**values)
+            return self.options(**coerced)
         except TypeError as exc:
             raise InvalidInputError(f"{self.key}: {exc}") from exc
+
+
+@functools.cache
+def _option_types(options: type) -> dict[str, Any]:
+    """Return the resolved annotation of each field of an options dataclass."""
+    return typing.get_type_hints(options)
+
+
+def coerce_option(key: str, name: str, value: Any, kind: Any) -> Any:
+    """Return ``value`` as the plain Python value of the option's annotated type.
+
+    One check for every option of every variant, so no builder or traversal sees a
+    value of the wrong type: an ``int`` option takes an integer (Python or numpy, not
+    a bool and not a float, which would be truncated), a ``float`` option a real
+    number that is not NaN (ints are widened), a ``bool`` option ``True`` or
+    ``False`` only (so ``"no"`` is not taken as true), a ``str`` option a string.
+    Range checks stay with each options class (``__post_init__``).
+
+    Raises
+    ------
+    InvalidInputError
+        Naming the variant, the option, the value and the type it needs.
+    """
+
+    def fail(expected: str) -> InvalidInputError:
+        return InvalidInputError(
+            f"{key}: option {name!r} expects {expected}, got {value!r} ({type(value).__name__})"
+        )
+
+    if kind is bool:
+        if isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        raise fail("True or False")
+    if kind is int:
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise fail("an integer")
+        return int(value)
+    if kind is float:
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer,
+                                                                         np.floating)):  # fmt: skip
+            raise fail("a number")
+        if np.isnan(value):
+            raise fail("a number, not NaN")
+        return float(value)
+    if kind is str and not isinstance(value, str):
+        raise fail("a string")
+    return value
 
 
 REGISTRY: dict[str, Variant] = {}

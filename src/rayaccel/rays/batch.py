@@ -34,6 +34,7 @@ from rayaccel.dtypes import (
     check_precision,
 )
 from rayaccel.errors import InvalidInputError
+from rayaccel.validation import reject_masked
 
 
 def _as_vectors(name: str, value: object, n: int | None, dtype: type = REAL) -> FloatArray:
@@ -53,12 +54,19 @@ def _as_vectors(name: str, value: object, n: int | None, dtype: type = REAL) -> 
 
 
 def _as_interval(name: str, value: object, n: int, dtype: type = REAL) -> FloatArray:
+    reject_masked(name, value)
     try:
-        array = np.asarray(value, dtype=np.float64)
+        raw = np.asarray(value)
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(
             f"{name}: expected a float scalar or an (n,) array ({exc})"
         ) from exc
+    if raw.dtype.kind not in "fiu":  # strings, bools and objects are not distances
+        raise InvalidInputError(
+            f"{name}: expected a float scalar or an (n,) array, got {value!r:.60} "
+            f"(dtype {raw.dtype})"
+        )
+    array = raw.astype(np.float64, copy=False)
     if array.ndim == 0:
         array = np.full(n, array, dtype=np.float64)
     if array.shape != (n,):
@@ -99,6 +107,8 @@ class RayBatch:
         precision: str = "float32",
     ) -> None:
         dtype = np.float64 if check_precision(precision) == "float64" else REAL
+        reject_masked("origins", origin)
+        reject_masked("directions", direction)
         origin_raw = np.asarray(origin)
         direction_raw = np.asarray(direction)
         n = None

@@ -24,9 +24,11 @@ import numpy.typing as npt
 
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray, check_precision
 from rayaccel.errors import InvalidInputError
+from rayaccel.validation import reject_masked
 
 
 def _coerce_vertices(vertices: object) -> FloatArray:
+    reject_masked("vertices", vertices)
     try:
         array = np.asarray(vertices)
     except (TypeError, ValueError) as exc:
@@ -50,6 +52,7 @@ def _coerce_vertices(vertices: object) -> FloatArray:
 
 
 def _coerce_faces(faces: object, n_vertices: int) -> IntArray:
+    reject_masked("faces", faces)
     try:
         array = np.asarray(faces)
     except (TypeError, ValueError) as exc:
