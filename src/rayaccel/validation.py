@@ -19,7 +19,8 @@ def reject_masked(name: str, value: object) -> None:
         Naming the argument and the number of masked entries.
     """
     if isinstance(value, np.ma.MaskedArray) and np.ma.getmaskarray(value).any():
+        masked = int(np.count_nonzero(np.ma.getmaskarray(value)))
         raise InvalidInputError(
-            f"{name}: a masked array with {int(np.ma.count_masked(value))} masked entries; "
+            f"{name}: a masked array with {masked} masked entries; "
             "fill them (.filled()) or drop them (.compressed()) first"
         )
