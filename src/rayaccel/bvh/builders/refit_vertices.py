@@ -10,12 +10,16 @@ orders of magnitude below a rebuild. The topology was chosen for the old geometr
 the tree's quality decays as the mesh moves away from it; :func:`sah_of` measures the
 SAH cost so the caller can rebuild once it has grown too much (Wald et al. 2007 §4.2).
 
-Parallelism follows :func:`rayaccel.bvh.builders.refit.refit_collapse`: the tree is
-cut below its top levels into about :data:`~rayaccel.bvh.builders.refit.FRONTIER_SIZE`
-independent subtrees (:func:`~rayaccel.bvh.builders.refit.top_frontier`), each refitted
-by one thread in post-order, then the few top nodes serially, children first. Every box
-is a min/max of the same values in any order, so the result does not depend on the
-thread count.
+Parallelism follows Karras 2012 §4 (the bottom-up pass of his LBVH builder): one pass
+records every node's parent; then threads take blocks of nodes from a shared counter
+(:mod:`rayaccel._work`), compute the box of each leaf in the block and climb towards the
+root. At each inner node the first thread to arrive flags it and stops; the second,
+which then finds both children done, writes the union and climbs on. The flag is a
+sequentially consistent exchange (:func:`rayaccel._jit.atomic_exchange`), so the second
+thread sees the box the first wrote. Every inner box is finished exactly once, by one
+thread, and every box is a min/max of the same values whichever thread computes it, so
+the result does not depend on the thread count. The work is O(n) with no stack and no
+sorting; the leaf pass, a gather of three vertices per reference, dominates.
 
 Split references (SBVH, pre-split input): a reference's box was the triangle clipped to
 a cell at build time. Clipping against the new geometry would need the split planes,
@@ -27,19 +31,25 @@ splits' tightening is lost.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.builders.refit import FRONTIER_SIZE, push, top_frontier
-from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
+from rayaccel._jit import atomic_exchange, cpu_kernel
+from rayaccel._work import new_counter, next_item, worker_count
+from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.config import parallel_section
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.kernels.sah import node_half_area
 
+#: Nodes per work item of the refit pass (about 100 KB of boxes; small enough to balance
+#: two to sixty-four threads on trees of 10^4 nodes and more).
+BLOCK_NODES = 4096
+
 
 @cpu_kernel(parallel=True)
-def _refit_kernel(node_first, node_count, prim_index, vertices, faces, left, right, lo, hi):
-    """Recompute every box of a BVH2 from the triangles its leaves list.
+def _refit_kernel(node_first, node_count, prim_index, vertices, faces, lo, hi, n_threads):
+    """Recompute every box of a BVH2 from the triangles its leaves list (Karras 2012 §4).
 
     Parameters
     ----------
@@ -49,35 +59,37 @@ def _refit_kernel(node_first, node_count, prim_index, vertices, faces, left, rig
     vertices : (V, 3) float32
         The new vertex positions.
     faces : (F, 3) int32
-    left, right : (n,) int32
-        Children of inner nodes (``-1`` for leaves), for cutting the tree into subtrees.
     lo, hi : (n, 3) float32
         Output boxes; every node is written.
+    n_threads : int
+        Workers to start (``numba.get_num_threads()`` of the caller).
     """
-    frontier, top = top_frontier(np.int32(0), left, right, FRONTIER_SIZE)
-    # Frontier subtrees in parallel, each in post-order on an explicit stack.
-    for f in prange(frontier.shape[0]):
-        stack = np.empty(2 * MAX_DEPTH + 64, dtype=np.int32)
-        stack[0] = frontier[f]
-        sp = 1
-        last = np.int32(-1)
-        while sp > 0:
-            node = stack[sp - 1]
-            u = np.uint64(node)
-            first = node_first[u]
-            count = node_count[u]
-            # An inner node is finished once its right child (popped last) is.
-            if count == 0 and last != first + 1:
-                stack = push(stack, sp, first + 1)
-                stack = push(stack, sp + 1, first)
-                sp += 2
-                continue
-            sp -= 1
-            last = node
-            if count > 0:
+    n = node_count.shape[0]
+    parent = np.empty(n, dtype=np.int32)
+    arrived = np.zeros(n, dtype=np.int32)
+    parent[0] = -1
+    # Parent links: every inner node names itself in its two children.
+    for node in prange(n):
+        u = np.uint64(node)
+        if node_count[u] == 0:
+            parent[np.uint64(node_first[u])] = node
+            parent[np.uint64(node_first[u] + 1)] = node
+    n_blocks = (n + BLOCK_NODES - 1) // BLOCK_NODES
+    counter = new_counter()
+    for _worker in prange(worker_count(n_blocks, n_threads, True)):
+        while True:
+            block = next_item(counter, n_blocks)
+            if block < 0:
+                break
+            for node in range(block * BLOCK_NODES, min(n, (block + 1) * BLOCK_NODES)):
+                u = np.uint64(node)
+                count = node_count[u]
+                if count == 0:
+                    continue
                 # A leaf: the union of its triangles' corner boxes.
                 x0 = y0 = z0 = np.float32(np.inf)
                 x1 = y1 = z1 = np.float32(-np.inf)
+                first = node_first[u]
                 for j in range(first, first + count):
                     p = np.uint64(prim_index[np.uint64(j)])
                     for c in range(3):
@@ -94,38 +106,45 @@ def _refit_kernel(node_first, node_count, prim_index, vertices, faces, left, rig
                 hi[u, 0] = x1
                 hi[u, 1] = y1
                 hi[u, 2] = z1
-            else:
-                # An inner node: the union of its two children.
-                a = np.uint64(first)
-                b = np.uint64(first + 1)
-                for k in range(3):
-                    lo[u, k] = min(lo[a, k], lo[b, k])
-                    hi[u, k] = max(hi[a, k], hi[b, k])
-    # The top levels, children before parents.
-    for i in range(top.shape[0] - 1, -1, -1):
-        u = np.uint64(top[i])
-        a = np.uint64(node_first[u])
-        b = a + np.uint64(1)
-        for k in range(3):
-            lo[u, k] = min(lo[a, k], lo[b, k])
-            hi[u, k] = max(hi[a, k], hi[b, k])
+                # Climb while this thread is the second to reach each parent.
+                up = parent[u]
+                while up >= 0 and atomic_exchange(arrived, up, np.int32(1)) == 1:
+                    w = np.uint64(up)
+                    a = np.uint64(node_first[w])
+                    b = a + np.uint64(1)
+                    for k in range(3):
+                        lo[w, k] = min(lo[a, k], lo[b, k])
+                        hi[w, k] = max(hi[a, k], hi[b, k])
+                    up = parent[w]
 
 
-@cpu_kernel()
+@cpu_kernel(parallel=True)
 def _sah_sums(lo, hi, node_count):
     """Return ``(Σ_inner half area, Σ_leaf half area × count, root half area)``, in float64.
 
-    One serial pass in node order, so the sum (and every SAH ratio built from it) is
-    the same on every run and thread count.
+    Each block of :data:`BLOCK_NODES` nodes is summed in node order into its own slot,
+    then the blocks in order, so the sum (and every SAH ratio built from it) is the same
+    on every run and thread count.
     """
+    n = node_count.shape[0]
+    n_blocks = (n + BLOCK_NODES - 1) // BLOCK_NODES
+    partial = np.zeros((n_blocks, 2), dtype=np.float64)
+    for block in prange(n_blocks):
+        inner = 0.0
+        leaf = 0.0
+        for i in range(block * BLOCK_NODES, min(n, (block + 1) * BLOCK_NODES)):
+            area = node_half_area(lo, hi, i)
+            if node_count[i] > 0:
+                leaf += area * node_count[i]
+            else:
+                inner += area
+        partial[block, 0] = inner
+        partial[block, 1] = leaf
     inner = 0.0
     leaf = 0.0
-    for i in range(node_count.shape[0]):
-        area = node_half_area(lo, hi, i)
-        if node_count[i] > 0:
-            leaf += area * node_count[i]
-        else:
-            inner += area
+    for block in range(n_blocks):
+        inner += partial[block, 0]
+        leaf += partial[block, 1]
     return inner, leaf, node_half_area(lo, hi, 0)
 
 
@@ -133,11 +152,12 @@ def sah_of(bvh: Bvh2, inner_cost: float = 1.2, prim_cost: float = 1.0) -> float:
     """Return the SAH cost of ``bvh`` (the value of :meth:`Bvh2.sah_cost`, from a kernel).
 
     ``(C_inner · Σ_inner SA(n) + C_prim · Σ_leaf SA(l)·N(l)) / SA(root)`` (MacDonald &
-    Booth 1990; Aila et al. 2013), summed in float64 in node order. It agrees with
+    Booth 1990; Aila et al. 2013), summed in float64 in a fixed order. It agrees with
     :meth:`~rayaccel.bvh.layouts.bvh2.Bvh2.sah_cost` to about 1e-7 (that method rounds
     box extents to float32 before widening) and needs no temporaries on large trees.
     """
-    inner, leaf, root = _sah_sums(bvh.node_lo, bvh.node_hi, bvh.node_count)
+    with parallel_section():
+        inner, leaf, root = _sah_sums(bvh.node_lo, bvh.node_hi, bvh.node_count)
     if root <= 0.0:
         if bvh.node_count[0] > 0:
             return float(prim_cost * bvh.n_refs)
@@ -166,26 +186,21 @@ def refit_bvh2(bvh: Bvh2, vertices: FloatArray, faces: IntArray) -> Bvh2:
 
     Notes
     -----
-    O(n_nodes + 3·n_refs): one pass over the references' corners and one over the
-    inner nodes, parallel over independent subtrees.
+    O(n_nodes + 3·n_refs), parallel over blocks of nodes (see the module docstring).
     """
-    count = bvh.node_count
-    inner = count == 0
-    left = np.where(inner, bvh.node_first, -1).astype(INDEX)
-    right = np.where(inner, bvh.node_first + 1, -1).astype(INDEX)
     lo = np.empty_like(bvh.node_lo, dtype=REAL)
     hi = np.empty_like(bvh.node_hi, dtype=REAL)
-    _refit_kernel(
-        bvh.node_first,
-        count,
-        bvh.prim_index,
-        np.ascontiguousarray(vertices, dtype=REAL),
-        np.ascontiguousarray(faces, dtype=INDEX),
-        left,
-        right,
-        lo,
-        hi,
-    )
+    with parallel_section():
+        _refit_kernel(
+            bvh.node_first,
+            bvh.node_count,
+            bvh.prim_index,
+            np.ascontiguousarray(vertices, dtype=REAL),
+            np.ascontiguousarray(faces, dtype=INDEX),
+            lo,
+            hi,
+            numba.get_num_threads(),
+        )
     return Bvh2(
         node_lo=lo,
         node_hi=hi,
