@@ -221,6 +221,16 @@ def test_precision_is_checked():
     for key in ("kdtree.sah", "grid.uniform"):
         with pytest.raises(InvalidInputError, match=r"float64.*bvh2\.binned_sah"):
             rayaccel.build(mesh, key)
+    # Queries not yet done in float64 refuse rather than round to float32.
+    accel = _accel("icosphere")
+    o, d = SHIFT + 20.0, -np.ones(3)
+    for query in (
+        lambda: accel.count_intersections(o[None], d[None]),
+        lambda: accel.compute_closest_points(o[None]),
+        lambda: accel.traversal_state(o[None], d[None]),
+    ):
+        with pytest.raises(InvalidInputError, match="float64 accel"):
+            query()
 
 
 def test_float32_default_is_unchanged():

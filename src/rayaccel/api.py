@@ -262,6 +262,7 @@ class Accel:
         InvalidInputError
             No traversal of this structure can pause and resume.
         """
+        self._require_float32("traversal_state")
         _, start = registry.pausable(self.structure_name)
         rays = RayBatch(origins, directions, tmin, tmax)
         with self._lock:
@@ -270,7 +271,16 @@ class Accel:
 
     # -- Open3D's geometry queries (rayaccel.bvh.geometry) ---------------------------------------
 
+    def _require_float32(self, what: str) -> None:
+        """Raise for a query that float64 accels cannot answer in float64 yet."""
+        if self.precision != "float32":
+            raise InvalidInputError(
+                f"{what}: not available for a float64 accel yet (it would round the "
+                "inputs or the hits to float32); intersect, occluded and trace work in float64"
+            )
+
     def _geometry_snapshot(self) -> tuple[Any, TriangleMesh, dict[str, Any]]:
+        self._require_float32("Open3D-style geometry queries")
         with self._lock:
             return self.structure, self.mesh, self._cache
 
