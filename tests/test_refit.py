@@ -15,6 +15,7 @@ import pytest
 import rayaccel
 import reference
 from rayaccel import registry
+from rayaccel.bvh.builders import refit_vertices
 from rayaccel.bvh.builders.refit_vertices import refit_bvh2, sah_of
 from rayaccel.errors import InvalidInputError
 
@@ -155,24 +156,33 @@ def test_refit_drops_derived_layouts(sphere):
     reference.assert_closest_matches(tri, rays, hits, reference.oracle(accel.mesh, rays))
 
 
-def test_refit_is_independent_of_thread_count(sphere):
+@pytest.mark.parametrize("parallel", [False, True])
+def test_refit_is_independent_of_thread_count(sphere, monkeypatch, parallel):
+    if parallel:  # the sphere's tree is small: force the parallel kernels
+        monkeypatch.setattr(refit_vertices, "PARALLEL_MIN_NODES", 0)
     accel = rayaccel.build(sphere, "bvh2.sbvh")
     verts = wave(sphere, 2).astype(np.float32)
     before = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
         one = refit_bvh2(accel.structure, verts, sphere.faces)
+        one_sah = sah_of(one)
     finally:
         numba.set_num_threads(before)
     many = refit_bvh2(accel.structure, verts, sphere.faces)
     assert np.array_equal(one.node_lo, many.node_lo)
     assert np.array_equal(one.node_hi, many.node_hi)
+    assert sah_of(many) == one_sah
     # Split references get their triangles' whole boxes: conservative, still valid.
     mesh = rayaccel.TriangleMesh(verts, sphere.faces)
     many.validate(mesh.triangles())
     lo, hi = recomputed_boxes(many, mesh)
     assert np.array_equal(many.node_lo, lo)
     assert np.array_equal(many.node_hi, hi)
+    # Writable and read-only inputs share one compiled signature per kernel.
+    refit_bvh2(accel.structure, mesh.vertices, mesh.faces.copy())
+    assert len(refit_vertices._refit_kernel(parallel).signatures) == 1
+    assert len(refit_vertices._sah_kernel(parallel).signatures) == 1
 
 
 def test_refit_deep_chain_tree():

@@ -31,6 +31,9 @@ splits' tightening is lost.
 
 from __future__ import annotations
 
+import functools
+from typing import Any
+
 import numba
 import numpy as np
 from numba import prange
@@ -47,105 +50,135 @@ from rayaccel.kernels.sah import node_half_area
 BLOCK_NODES = 4096
 
 
-@cpu_kernel(parallel=True)
-def _refit_kernel(node_first, node_count, prim_index, vertices, faces, lo, hi, n_threads):
-    """Recompute every box of a BVH2 from the triangles its leaves list (Karras 2012 §4).
-
-    Parameters
-    ----------
-    node_first, node_count : (n,) int32
-        The canonical topology (:class:`~rayaccel.bvh.layouts.bvh2.Bvh2`).
-    prim_index : (n_refs,) int32
-    vertices : (V, 3) float32
-        The new vertex positions.
-    faces : (F, 3) int32
-    lo, hi : (n, 3) float32
-        Output boxes; every node is written.
-    n_threads : int
-        Workers to start (``numba.get_num_threads()`` of the caller).
-    """
-    n = node_count.shape[0]
-    parent = np.empty(n, dtype=np.int32)
-    arrived = np.zeros(n, dtype=np.int32)
-    parent[0] = -1
-    # Parent links: every inner node names itself in its two children.
-    for node in prange(n):
-        u = np.uint64(node)
-        if node_count[u] == 0:
-            parent[np.uint64(node_first[u])] = node
-            parent[np.uint64(node_first[u] + 1)] = node
-    n_blocks = (n + BLOCK_NODES - 1) // BLOCK_NODES
-    counter = new_counter()
-    for _worker in prange(worker_count(n_blocks, n_threads, True)):
-        while True:
-            block = next_item(counter, n_blocks)
-            if block < 0:
-                break
-            for node in range(block * BLOCK_NODES, min(n, (block + 1) * BLOCK_NODES)):
-                u = np.uint64(node)
-                count = node_count[u]
-                if count == 0:
-                    continue
-                # A leaf: the union of its triangles' corner boxes.
-                x0 = y0 = z0 = np.float32(np.inf)
-                x1 = y1 = z1 = np.float32(-np.inf)
-                first = node_first[u]
-                for j in range(first, first + count):
-                    p = np.uint64(prim_index[np.uint64(j)])
-                    for c in range(3):
-                        v = np.uint64(faces[p, c])
-                        x0 = min(x0, vertices[v, 0])
-                        y0 = min(y0, vertices[v, 1])
-                        z0 = min(z0, vertices[v, 2])
-                        x1 = max(x1, vertices[v, 0])
-                        y1 = max(y1, vertices[v, 1])
-                        z1 = max(z1, vertices[v, 2])
-                lo[u, 0] = x0
-                lo[u, 1] = y0
-                lo[u, 2] = z0
-                hi[u, 0] = x1
-                hi[u, 1] = y1
-                hi[u, 2] = z1
-                # Climb while this thread is the second to reach each parent.
-                up = parent[u]
-                while up >= 0 and atomic_exchange(arrived, up, np.int32(1)) == 1:
-                    w = np.uint64(up)
-                    a = np.uint64(node_first[w])
-                    b = a + np.uint64(1)
-                    for k in range(3):
-                        lo[w, k] = min(lo[a, k], lo[b, k])
-                        hi[w, k] = max(hi[a, k], hi[b, k])
-                    up = parent[w]
+#: Trees with fewer nodes are refitted (and their SAH summed) on the calling thread: the
+#: serial pass takes a few milliseconds there, less than a parallel launch can cost on a
+#: loaded machine.
+PARALLEL_MIN_NODES = 1 << 17
 
 
-@cpu_kernel(parallel=True)
-def _sah_sums(lo, hi, node_count):
-    """Return ``(Σ_inner half area, Σ_leaf half area × count, root half area)``, in float64.
+@functools.cache
+def _refit_kernel(parallel: bool) -> Any:
+    """Return the refit kernel, parallel or serial (STYLE §4.3: one dispatcher per variant)."""
 
-    Each block of :data:`BLOCK_NODES` nodes is summed in node order into its own slot,
-    then the blocks in order, so the sum (and every SAH ratio built from it) is the same
-    on every run and thread count.
-    """
-    n = node_count.shape[0]
-    n_blocks = (n + BLOCK_NODES - 1) // BLOCK_NODES
-    partial = np.zeros((n_blocks, 2), dtype=np.float64)
-    for block in prange(n_blocks):
+    @cpu_kernel(parallel=parallel)
+    def kernel(node_first, node_count, prim_index, vertices, faces, lo, hi, n_threads):
+        """Recompute every box of a BVH2 from the triangles its leaves list (Karras 2012 §4).
+
+        Parameters
+        ----------
+        node_first, node_count : (n,) int32
+            The canonical topology (:class:`~rayaccel.bvh.layouts.bvh2.Bvh2`).
+        prim_index : (n_refs,) int32
+        vertices : (V, 3) float32
+            The new vertex positions.
+        faces : (F, 3) int32
+        lo, hi : (n, 3) float32
+            Output boxes; every node is written.
+        n_threads : int
+            Workers to start (``numba.get_num_threads()`` of the caller).
+        """
+        n = node_count.shape[0]
+        parent = np.empty(n, dtype=np.int32)
+        arrived = np.zeros(n, dtype=np.int32)
+        parent[0] = -1
+        # Parent links: every inner node names itself in its two children.
+        for node in prange(n):
+            u = np.uint64(node)
+            if node_count[u] == 0:
+                parent[np.uint64(node_first[u])] = node
+                parent[np.uint64(node_first[u] + 1)] = node
+        n_blocks = (n + BLOCK_NODES - 1) // BLOCK_NODES
+        counter = new_counter()
+        for _worker in prange(worker_count(n_blocks, n_threads, parallel)):
+            while True:
+                block = next_item(counter, n_blocks)
+                if block < 0:
+                    break
+                for node in range(block * BLOCK_NODES, min(n, (block + 1) * BLOCK_NODES)):
+                    u = np.uint64(node)
+                    count = node_count[u]
+                    if count == 0:
+                        continue
+                    # A leaf: the union of its triangles' corner boxes.
+                    x0 = y0 = z0 = np.float32(np.inf)
+                    x1 = y1 = z1 = np.float32(-np.inf)
+                    first = node_first[u]
+                    for j in range(first, first + count):
+                        p = np.uint64(prim_index[np.uint64(j)])
+                        for c in range(3):
+                            v = np.uint64(faces[p, c])
+                            x0 = min(x0, vertices[v, 0])
+                            y0 = min(y0, vertices[v, 1])
+                            z0 = min(z0, vertices[v, 2])
+                            x1 = max(x1, vertices[v, 0])
+                            y1 = max(y1, vertices[v, 1])
+                            z1 = max(z1, vertices[v, 2])
+                    lo[u, 0] = x0
+                    lo[u, 1] = y0
+                    lo[u, 2] = z0
+                    hi[u, 0] = x1
+                    hi[u, 1] = y1
+                    hi[u, 2] = z1
+                    # Climb while this thread is the second to reach each parent.
+                    up = parent[u]
+                    while up >= 0 and atomic_exchange(arrived, up, np.int32(1)) == 1:
+                        w = np.uint64(up)
+                        a = np.uint64(node_first[w])
+                        b = a + np.uint64(1)
+                        for k in range(3):
+                            lo[w, k] = min(lo[a, k], lo[b, k])
+                            hi[w, k] = max(hi[a, k], hi[b, k])
+                        up = parent[w]
+
+    return kernel
+
+
+@functools.cache
+def _sah_kernel(parallel: bool) -> Any:
+    """Return the SAH sum kernel, parallel or serial."""
+
+    @cpu_kernel(parallel=parallel)
+    def kernel(lo, hi, node_count):
+        """Return ``(Σ_inner half area, Σ_leaf half area × count, root half area)``, in float64.
+
+        Each block of :data:`BLOCK_NODES` nodes is summed in node order into its own slot,
+        then the blocks in order, so the sum (and every SAH ratio built from it) is the same
+        on every run and thread count.
+        """
+        _ = parallel  # STYLE §4.3 rule 1: the flag joins the cache key
+        n = node_count.shape[0]
+        n_blocks = (n + BLOCK_NODES - 1) // BLOCK_NODES
+        partial = np.zeros((n_blocks, 2), dtype=np.float64)
+        for block in prange(n_blocks):
+            inner = 0.0
+            leaf = 0.0
+            for i in range(block * BLOCK_NODES, min(n, (block + 1) * BLOCK_NODES)):
+                area = node_half_area(lo, hi, i)
+                if node_count[i] > 0:
+                    leaf += area * node_count[i]
+                else:
+                    inner += area
+            partial[block, 0] = inner
+            partial[block, 1] = leaf
         inner = 0.0
         leaf = 0.0
-        for i in range(block * BLOCK_NODES, min(n, (block + 1) * BLOCK_NODES)):
-            area = node_half_area(lo, hi, i)
-            if node_count[i] > 0:
-                leaf += area * node_count[i]
-            else:
-                inner += area
-        partial[block, 0] = inner
-        partial[block, 1] = leaf
-    inner = 0.0
-    leaf = 0.0
-    for block in range(n_blocks):
-        inner += partial[block, 0]
-        leaf += partial[block, 1]
-    return inner, leaf, node_half_area(lo, hi, 0)
+        for block in range(n_blocks):
+            inner += partial[block, 0]
+            leaf += partial[block, 1]
+        return inner, leaf, node_half_area(lo, hi, 0)
+
+    return kernel
+
+
+def _read_only(array: np.ndarray, dtype: Any) -> Any:
+    """Return a read-only C-contiguous view of ``array`` in ``dtype`` (one kernel signature).
+
+    Mesh arrays are read-only and tree arrays writable; numba types the two differently,
+    so every input goes in as a read-only view.
+    """
+    view = np.ascontiguousarray(array, dtype=dtype).view()
+    view.flags.writeable = False
+    return view
 
 
 def sah_of(bvh: Bvh2, inner_cost: float = 1.2, prim_cost: float = 1.0) -> float:
@@ -157,7 +190,11 @@ def sah_of(bvh: Bvh2, inner_cost: float = 1.2, prim_cost: float = 1.0) -> float:
     box extents to float32 before widening) and needs no temporaries on large trees.
     """
     with parallel_section():
-        inner, leaf, root = _sah_sums(bvh.node_lo, bvh.node_hi, bvh.node_count)
+        kernel = _sah_kernel(bvh.n_nodes >= PARALLEL_MIN_NODES)
+        inner, leaf, root = kernel(
+            _read_only(bvh.node_lo, REAL), _read_only(bvh.node_hi, REAL),
+            _read_only(bvh.node_count, INDEX),
+        )  # fmt: skip
     if root <= 0.0:
         if bvh.node_count[0] > 0:
             return float(prim_cost * bvh.n_refs)
@@ -191,12 +228,12 @@ def refit_bvh2(bvh: Bvh2, vertices: FloatArray, faces: IntArray) -> Bvh2:
     lo = np.empty_like(bvh.node_lo, dtype=REAL)
     hi = np.empty_like(bvh.node_hi, dtype=REAL)
     with parallel_section():
-        _refit_kernel(
-            bvh.node_first,
-            bvh.node_count,
-            bvh.prim_index,
-            np.ascontiguousarray(vertices, dtype=REAL),
-            np.ascontiguousarray(faces, dtype=INDEX),
+        _refit_kernel(bvh.n_nodes >= PARALLEL_MIN_NODES)(
+            _read_only(bvh.node_first, INDEX),
+            _read_only(bvh.node_count, INDEX),
+            _read_only(bvh.prim_index, INDEX),
+            _read_only(vertices, REAL),
+            _read_only(faces, INDEX),
             lo,
             hi,
             numba.get_num_threads(),
