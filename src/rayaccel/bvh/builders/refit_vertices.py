@@ -38,6 +38,7 @@ import numba
 import numpy as np
 from numba import prange
 
+from rayaccel._hugepages import empty_huge, zeros_huge
 from rayaccel._jit import atomic_exchange, cpu_kernel
 from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import Bvh2
@@ -78,8 +79,8 @@ def _refit_kernel(parallel: bool) -> Any:
             Workers to start (``numba.get_num_threads()`` of the caller).
         """
         n = node_count.shape[0]
-        parent = np.empty(n, dtype=np.int32)
-        arrived = np.zeros(n, dtype=np.int32)
+        parent = empty_huge(n, np.int32)
+        arrived = zeros_huge(n, np.int32)
         parent[0] = -1
         # Parent links: every inner node names itself in its two children.
         for node in prange(n):
