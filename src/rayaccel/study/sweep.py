@@ -2,10 +2,11 @@
 
 :func:`sweep` reads the results file first (:mod:`rayaccel.study.results`) and runs
 only the cells it does not hold, so an interrupted sweep (Ctrl-C, SIGKILL, a
-crash) resumes where it stopped and repeats no finished cell. Scenes are done one
+crash) resumes where it stopped and repeats no finished cell. Scenes are taken one
 at a time: the client loads the mesh and makes its ray sets
 (:mod:`rayaccel.study.raysets`), then runs its cells (:mod:`rayaccel.study.cells`)
-and appends each record as it arrives. A cell that raises is tried again, up to
+and appends each record as it arrives (on Dask, a scene of counter cells only
+overlaps the loading of the next scene). A cell that raises is tried again, up to
 :data:`MAX_ATTEMPTS` times, then recorded as failed with its error.
 
 With ``workers`` or ``scheduler`` the cells run on a ``dask.distributed`` cluster
@@ -142,6 +143,7 @@ def sweep(
             raysets = scene_raysets(mesh, scene, cfg.rays, rays_dir) if needs_rays else {}
             rays_seconds += time.perf_counter() - t0
             runner.run(scene_cells, cfg, mesh, raysets, state)
+        runner.drain(state)
     finally:
         runner.close()
     return SweepSummary(
@@ -181,6 +183,9 @@ class _Runner:
             state: _State) -> None:  # fmt: skip
         raise NotImplementedError
 
+    def drain(self, state: _State) -> None:
+        """Wait for the cells still in flight and record them (none by default)."""
+
     def close(self) -> None:
         """Release what the runner holds."""
 
@@ -206,10 +211,17 @@ def _killed_record(cell: Cell, exc: BaseException) -> Record:
 
 
 class _DaskRunner(_Runner):
-    """Cells on a ``dask.distributed`` cluster (see the module docstring)."""
+    """Cells on a ``dask.distributed`` cluster (see the module docstring).
+
+    A scene of counter cells only does not wait for its cells: :meth:`run` returns
+    once they are submitted, so the client loads the next scene while the workers
+    compute, and no worker idles at the end of a scene while another finishes it.
+    A scene with build or timing cells first waits for every cell in flight, then
+    for its own, so nothing the client does overlaps a timing.
+    """
 
     def __init__(self, workers: int, scheduler: str | None) -> None:
-        from dask.distributed import Client, LocalCluster
+        from dask.distributed import Client, LocalCluster, as_completed
 
         self.cluster = None
         if scheduler:
@@ -218,6 +230,12 @@ class _DaskRunner(_Runner):
             self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                         dashboard_address=None)  # fmt: skip
             self.client = Client(self.cluster)
+        self.attempts: dict[str, int] = {}
+        # In-flight futures: their cell, the host of an exclusive cell, the call's arguments
+        self.futures: dict[Any, tuple[Cell, str | None, tuple[Any, ...]]] = {}
+        self.exclusive: deque[tuple[Cell, tuple[Any, ...]]] = deque()
+        self.busy: dict[str, bool] = {}
+        self.done = as_completed()
 
     def close(self) -> None:
         self.client.close()
@@ -231,16 +249,66 @@ class _DaskRunner(_Runner):
             hosts.setdefault(info.get("host", address), []).append(address)
         return {host: sorted(addresses) for host, addresses in hosts.items()}
 
+    def _submit(self, cell: Cell, host: str | None, args: tuple[Any, ...]) -> None:
+        self.attempts[cell.key] = self.attempts.get(cell.key, 0) + 1
+        config, mesh_f, rayset, home = args
+        # A host, not a worker address, for timed cells: a worker that dies is
+        # replaced under another address, and the cell must be able to run there.
+        # Counter cells prefer their structure's worker but may run on any.
+        if host is not None:
+            future = self.client.submit(run_cell, cell, config, mesh_f, rayset, workers=[host],
+                                        pure=False)  # fmt: skip
+        else:
+            future = self.client.submit(run_cell, cell, config, mesh_f, rayset, workers=[home],
+                                        allow_other_workers=True, pure=False)  # fmt: skip
+        self.futures[future] = (cell, host, args)
+        self.done.add(future)
+
+    def _feed_exclusive(self) -> None:
+        for host, busy in self.busy.items():
+            if not busy and self.exclusive:
+                self.busy[host] = True
+                cell, args = self.exclusive.popleft()
+                self._submit(cell, host, args)
+
+    def _collect(self, future: Any, state: _State) -> None:
+        """Record a finished future's cell, or submit it again."""
+        cell, host, args = self.futures.pop(future)
+        try:
+            record = future.result()
+        except Exception as exc:  # the worker died more often than Dask allows
+            record = _killed_record(cell, exc)
+        if host is not None:
+            self.busy[host] = False
+        if record["status"] != "ok" and self.attempts[cell.key] < MAX_ATTEMPTS:
+            if host is not None:
+                self.exclusive.appendleft((cell, args))
+            else:
+                self._submit(cell, None, args)
+        else:
+            state.finish(record, self.attempts[cell.key])
+        self._feed_exclusive()
+
+    def drain(self, state: _State) -> None:
+        """Wait for every cell in flight and record it."""
+        while self.futures:
+            self._collect(next(self.done), state)
+
     def run(self, cells: list[Cell], config: SweepConfig, mesh: Any, raysets: dict[str, Any],
             state: _State) -> None:  # fmt: skip
-        from dask.distributed import as_completed
-
         client = self.client
+        pipelined = not any(cell.exclusive for cell in cells)
+        if pipelined:  # record what has finished meanwhile, without waiting
+            while self.done.has_ready():
+                self._collect(next(self.done), state)
+        else:
+            self.drain(state)
         by_host = self._hosts()
-        hosts = list(by_host)
+        for host in by_host:
+            self.busy.setdefault(host, False)
         # Counter cells of one structure go preferably to one worker, so each worker
         # builds few structures; the structures are spread by their cell counts.
-        addresses = [a for host in hosts for a in by_host[host]]
+        addresses = [a for host in by_host for a in by_host[host]]
         groups: dict[str, int] = {}
         for cell in cells:
             if not cell.exclusive:
@@ -248,51 +316,13 @@ class _DaskRunner(_Runner):
         home = {b: addresses[i] for b, i in balance(groups, len(addresses)).items()}
         mesh_f = client.scatter(mesh, broadcast=True)
         sets_f = {name: client.scatter(rs, broadcast=True) for name, rs in raysets.items()}
-        attempts: dict[str, int] = {}
-        exclusive = deque(cell for cell in cells if cell.exclusive)
-        busy: dict[str, bool] = dict.fromkeys(hosts, False)
-        futures: dict[Any, tuple[Cell, str | None]] = {}
-        done = as_completed()
-
-        def submit(cell: Cell, host: str | None) -> None:
-            attempts[cell.key] = attempts.get(cell.key, 0) + 1
-            rayset = sets_f.get(cell.rayset) if cell.rayset else None
-            # A host, not a worker address, for timed cells: a worker that dies is
-            # replaced under another address, and the cell must be able to run there.
-            # Counter cells prefer their structure's worker but may run on any.
-            if host is not None:
-                future = client.submit(run_cell, cell, config, mesh_f, rayset, workers=[host],
-                                       pure=False)  # fmt: skip
-            else:
-                future = client.submit(run_cell, cell, config, mesh_f, rayset,
-                                       workers=[home[cell.builder]], allow_other_workers=True,
-                                       pure=False)  # fmt: skip
-            futures[future] = (cell, host)
-            done.add(future)
-
-        def feed_exclusive() -> None:
-            for host in hosts:
-                if not busy[host] and exclusive:
-                    busy[host] = True
-                    submit(exclusive.popleft(), host)
-
         for cell in cells:
-            if not cell.exclusive:
-                submit(cell, None)
-        feed_exclusive()
-        for future in done:
-            cell, host = futures.pop(future)
-            try:
-                record = future.result()
-            except Exception as exc:  # the worker died more often than Dask allows
-                record = _killed_record(cell, exc)
-            if host is not None:
-                busy[host] = False
-            if record["status"] != "ok" and attempts[cell.key] < MAX_ATTEMPTS:
-                if host is not None:
-                    exclusive.appendleft(cell)
-                else:
-                    submit(cell, None)
+            rayset = sets_f.get(cell.rayset) if cell.rayset else None
+            args = (config, mesh_f, rayset, home.get(cell.builder))
+            if cell.exclusive:
+                self.exclusive.append((cell, args))
             else:
-                state.finish(record, attempts[cell.key])
-            feed_exclusive()
+                self._submit(cell, None, args)
+        self._feed_exclusive()
+        if not pipelined:
+            self.drain(state)
