@@ -3,7 +3,7 @@
 Layers, lowest first: 0 ``_jit dtypes errors counters config queries _variant _atomic
 _hugepages _work``; 1 ``kernels``; 2 ``scene rays``; 3 ``trace`` (the family-neutral
 traversal core); 4 ``bvh kdtree grid``; 5 ``cuda``; 6 ``registry metrics``; 7 ``api``;
-8 ``render bench precompile``; 9 ``study``; 10 ``cli``. A module imports only from its own
+8 ``render bench precompile trimesh``; 9 ``study``; 10 ``cli``. A module imports only from its own
 layer or lower ones; sibling packages of one layer (``scene``/``rays``, ``bvh``/``kdtree``/``grid``,
 ``registry``/``metrics``, ``render``/``bench``) stay independent, so no family imports
 another. No module imports another module's private (``_name``) names. The package
@@ -42,6 +42,7 @@ LAYERS: dict[str, int] = {
     "persist": 6,  # not in STYLE §2: saved accel files (npz + JSON header, hashed)
     "api": 7,
     "render": 8, "bench": 8, "precompile": 8,
+    "trimesh": 8,  # not in STYLE §2: trimesh's ray interface on a BVH (drop-in for mesh.ray)
     "study": 9,  # not in STYLE §2: the thesis's study (path-traced rays, sweeps, reports)
     "cli": 10,
 }
