@@ -35,7 +35,7 @@ same mesh on the first such query (memoised in the accel, counted in its ``bytes
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -81,8 +81,23 @@ class MemoArray:
         return int(self.array.nbytes)
 
 
+class _FieldMapping:
+    """Read a result's fields by name too (``result["t_hit"]``), as Open3D's dicts are read."""
+
+    __slots__ = ()
+
+    def keys(self) -> tuple[str, ...]:
+        """Return the field names (Open3D's dictionary keys)."""
+        return tuple(f.name for f in fields(self))  # type: ignore[arg-type]
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        if key not in self.keys():
+            raise KeyError(f"{key!r} (fields: {', '.join(self.keys())})")
+        return getattr(self, key)  # type: ignore[no-any-return]
+
+
 @dataclass(frozen=True, slots=True, eq=False)
-class IntersectionList:
+class IntersectionList(_FieldMapping):
     """Every hit of every ray, CSR by ray (Open3D's ``list_intersections`` fields).
 
     Also readable as a mapping (``result["t_hit"]``), like Open3D's dict.
@@ -107,18 +122,9 @@ class IntersectionList:
     primitive_ids: IntArray
     primitive_uvs: FloatArray
 
-    def keys(self) -> tuple[str, ...]:
-        """Return the field names (Open3D's dictionary keys)."""
-        return ("ray_splits", "ray_ids", "t_hit", "primitive_ids", "primitive_uvs")
-
-    def __getitem__(self, key: str) -> np.ndarray:
-        if key not in self.keys():
-            raise KeyError(f"{key!r} (fields: {', '.join(self.keys())})")
-        return getattr(self, key)  # type: ignore[no-any-return]
-
 
 @dataclass(frozen=True, slots=True, eq=False)
-class ClosestPoints:
+class ClosestPoints(_FieldMapping):
     """The nearest point of the mesh to each query point (Open3D's ``compute_closest_points``).
 
     Also readable as a mapping (``result["points"]``), like Open3D's dict.
@@ -142,15 +148,6 @@ class ClosestPoints:
     primitive_uvs: FloatArray
     primitive_normals: FloatArray
     distance: FloatArray
-
-    def keys(self) -> tuple[str, ...]:
-        """Return the field names (Open3D's dictionary keys, plus ``distance``)."""
-        return ("points", "primitive_ids", "primitive_uvs", "primitive_normals", "distance")
-
-    def __getitem__(self, key: str) -> np.ndarray:
-        if key not in self.keys():
-            raise KeyError(f"{key!r} (fields: {', '.join(self.keys())})")
-        return getattr(self, key)  # type: ignore[no-any-return]
 
 
 def coerce_points(points: Any, name: str = "points") -> np.ndarray:
