@@ -1,4 +1,7 @@
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -181,21 +184,16 @@ def test_parsers():
 
 @pytest.mark.parametrize("name", list(peers.PEERS))
 def test_peer_matches_the_oracle(name):
+    """Each peer agrees with the oracle on every standard ray set (in a subprocess)."""
     peer = peers.get_peer(name)
     if not peer.available():
         pytest.skip(peer.unavailable_reason())
-    mesh = catalog.get("cornell-box")
-    sets = standard_raysets(mesh, "cornell-box", width=8, height=8, seed=1)
-    peer.build(mesh)
-    for rayset in sets.values():
-        ref = harness.reference_hits(mesh, rayset, 64, 0)
-        rays = peer.prepare(ref.rays)  # 64 rays: more than one trimesh chunk
-        if rayset.query == "any":
-            prim = np.where(peer.occluded(rays), 0, -1)
-            assert harness.count_mismatches(ref, "any", None, prim, harness.RTOL_PEER) == 0
-        else:
-            t, prim = peer.intersect(rays)
-            assert harness.count_mismatches(ref, "closest", t, prim, harness.RTOL_PEER) == 0
+    script = Path(__file__).with_name("peer_oracle_check.py")
+    proc = subprocess.run([sys.executable, str(script), name], capture_output=True, text=True,
+                          timeout=900)  # fmt: skip
+    output = proc.stdout + proc.stderr
+    assert proc.returncode == 0, f"exit {proc.returncode}:\n{output[-3000:]}"
+    assert proc.stdout.strip().endswith("OK"), output[-3000:]
 
 
 def test_compile_phase_makes_every_kernel_the_timings_call(monkeypatch):
