@@ -281,9 +281,7 @@ def inside(
     if n == 0:
         return np.zeros(0, dtype=bool)
     if method == "winding":
-        bvh, memo = query_bvh(structure, mesh, cache, unique=True)
-        rows = memoised_layout(memo, "geometry.rows", lambda: MemoArray(mesh.hit_rows())).array
-        return winding_numbers(bvh, rows, points, memo) > 0.5
+        return winding_number(structure, mesh, points, cache) > 0.5
     bvh, memo = query_bvh(structure, mesh, cache)
     votes = np.zeros(n, dtype=np.int32)
     for direction in parity_directions(int(n_rays)):
