@@ -20,7 +20,7 @@ endif
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,peers,study]"
+	$(BIN)/python -m pip install --quiet -e ".[test,peers,study,gpu]"
 	touch $(STAMP)
 
 # Open3D's wheel needs Debian's libusb-1.0-0; install it when we may (root with apt-get).

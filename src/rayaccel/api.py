@@ -21,7 +21,7 @@ import os
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +36,12 @@ from rayaccel.queries import QUERY_KINDS
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.structure import QualityMetrics, Structure
+
+if TYPE_CHECKING:
+    from rayaccel.cuda.device import DeviceRays
+
+#: Where queries run: numba's CPU kernels, or the same bodies compiled for CUDA.
+DEVICES = ("cpu", "cuda")
 
 
 class Accel:
@@ -99,11 +105,12 @@ class Accel:
 
     def trace(
         self,
-        rays: RayBatch,
+        rays: RayBatch | DeviceRays,
         *,
         query: str = "closest",
         traversal: str | None = None,
         stats: bool = False,
+        device: str = "cpu",
         **options: Any,
     ) -> HitBatch:
         """Trace a :class:`RayBatch` with a registered traversal.
@@ -120,16 +127,21 @@ class Accel:
             (:func:`rayaccel.registry.default_traversal`).
         stats : bool
             Fill ``hits.stats`` with per-ray counters.
+        device : {"cpu", "cuda"}
+            ``"cuda"`` runs the traversal's kernel on the GPU (:mod:`rayaccel.cuda`); ``rays``
+            may then also be :class:`rayaccel.cuda.device.DeviceRays`.
         **options
             Options of the traversal (unknown names raise with a suggestion).
         """
+        if device not in DEVICES:
+            raise InvalidInputError(f"device: expected one of {DEVICES}, got {device!r}")
         if query not in QUERY_KINDS:
             raise InvalidInputError(f"query: expected one of {QUERY_KINDS}, got {query!r}")
         if not isinstance(stats, (bool, np.bool_)):
             raise InvalidInputError(f"stats: expected True or False, got {stats!r}")
         if traversal is not None and not isinstance(traversal, str):
             raise InvalidInputError(f"traversal: expected a registry key, got {traversal!r}")
-        if not isinstance(rays, RayBatch):
+        if not isinstance(rays, RayBatch) and not (device == "cuda" and _is_device_rays(rays)):
             raise InvalidInputError(f"rays: expected a RayBatch, got {type(rays).__name__}")
         key = traversal or registry.default_traversal(self.structure_name)
         variant = registry.get(key, "traversal")
@@ -153,10 +165,50 @@ class Accel:
         with self._lock:
             # One consistent snapshot: refit() swaps the three together.
             cache, structure, mesh = self._cache, self.structure, self.mesh
+        if device == "cuda":
+            return self._trace_cuda(key, variant, rays, query, stats, opts)
         rays = rays.astype(mesh.precision)
         return variant.func(  # type: ignore[no-any-return]
             structure, mesh, rays, query=query, stats=stats, options=opts, cache=cache
         )
+
+    def _trace_cuda(
+        self, key: str, variant: Any, rays: Any, query: str, stats: bool, opts: Any
+    ) -> HitBatch:
+        """Run traversal ``key`` on the GPU (:mod:`rayaccel.cuda.device`)."""
+        from rayaccel.cuda import device as cuda_device
+
+        if key not in cuda_device.CUDA_TRAVERSALS:
+            raise InvalidInputError(
+                f"traversal {key!r} has no CUDA kernel; device='cuda' runs "
+                f"{', '.join(cuda_device.CUDA_TRAVERSALS)}"
+            )
+        if self.precision != "float32":
+            raise InvalidInputError("device='cuda' traces float32 accels only")
+        with self._lock:
+            cache, structure, mesh = self._cache, self.structure, self.mesh
+            memo = cache.setdefault("cuda.arrays", {})
+        with cuda_device.on_cuda(memo):
+            return variant.func(  # type: ignore[no-any-return]
+                structure, mesh, rays, query=query, stats=stats, options=opts, cache=cache
+            )
+
+    def to_device(self, traversal: str | None = None, **options: Any) -> Accel:
+        """Copy the layout ``traversal`` needs to the GPU now, instead of on its first query.
+
+        The copy is kept with the accel (one per layout, shared by every later
+        ``device="cuda"`` query, never copied per launch) and dropped by :meth:`refit`.
+        Returns ``self``.
+        """
+        from rayaccel.cuda import device as cuda_device
+
+        empty = cuda_device.device_rays(
+            np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), 0.0, np.inf
+        )
+        key = traversal or registry.default_traversal(self.structure_name)
+        variant = registry.get(key, "traversal")
+        self._trace_cuda(key, variant, empty, "closest", False, variant.make_options(options))
+        return self
 
     def intersect(
         self,
@@ -167,6 +219,7 @@ class Accel:
         *,
         traversal: str | None = None,
         stats: bool = False,
+        device: str = "cpu",
         **options: Any,
     ) -> HitBatch:
         """Return the closest hit of every ray.
@@ -185,6 +238,11 @@ class Accel:
             Traversal registry key (``rayaccel list``); default: the structure's default.
         stats : bool
             Also return per-ray counters (``hits.stats["nodes"]`` etc.).
+        device : {"cpu", "cuda"}
+            ``"cuda"`` traces on the GPU (:mod:`rayaccel.cuda`): rays may then be numpy
+            arrays (hits come back as numpy) or device arrays with
+            ``__cuda_array_interface__`` (CuPy, PyTorch, Numba; float32, used without a
+            copy), and hits then stay on the GPU as Numba device arrays.
         **options
             Options of the traversal.
 
@@ -194,7 +252,9 @@ class Accel:
             ``t`` (inf on a miss), ``prim`` (-1 on a miss), barycentrics ``u, v``; float32,
             or float64 for a float64 accel.
         """
-        return self._query(origins, directions, tmin, tmax, "closest", traversal, stats, options)
+        return self._query(
+            origins, directions, tmin, tmax, "closest", traversal, stats, options, device
+        )
 
     def occluded(
         self,
@@ -204,13 +264,22 @@ class Accel:
         tmax: Any = np.inf,
         *,
         traversal: str | None = None,
+        device: str = "cpu",
         **options: Any,
     ) -> BoolArray:
         """Return ``(n,)`` bool: whether anything is hit in ``[tmin, tmax]`` (any-hit query).
 
         For per-ray counters of an any-hit query use ``trace(rays, query="any", stats=True)``.
+        ``device="cuda"`` as in :meth:`intersect` (a device bool array for device rays).
         """
-        return self._query(origins, directions, tmin, tmax, "any", traversal, False, options).hit
+        hits = self._query(
+            origins, directions, tmin, tmax, "any", traversal, False, options, device
+        )
+        if device == "cuda" and not isinstance(hits.prim, np.ndarray):
+            from rayaccel.cuda.device import hit_mask
+
+            return hit_mask(hits.prim)
+        return hits.hit
 
     def _query(
         self,
@@ -222,8 +291,15 @@ class Accel:
         traversal: str | None,
         stats: bool,
         options: dict[str, Any],
+        device: str = "cpu",
     ) -> HitBatch:
         """Trace numpy rays, in chunks beyond the ray budget, or Dask arrays of rays lazily."""
+        if device == "cuda":
+            from rayaccel.cuda.device import device_rays
+
+            rays_on_gpu = device_rays(origins, directions, tmin, tmax)
+            return self.trace(rays_on_gpu, query=query, traversal=traversal, stats=stats,
+                              device="cuda", **options)  # fmt: skip
         if any(chunked.is_dask_array(a) for a in (origins, directions, tmin, tmax)):
             if stats:
                 raise InvalidInputError("stats: per-ray counters are not available for Dask arrays")
@@ -571,6 +647,13 @@ class Accel:
 
 #: Structures whose builders accept float64 meshes (boxes widened by one float32 ulp).
 FLOAT64_STRUCTURES = ("bvh2",)
+
+
+def _is_device_rays(rays: Any) -> bool:
+    """Whether ``rays`` are :class:`rayaccel.cuda.device.DeviceRays`."""
+    from rayaccel.cuda.device import DeviceRays
+
+    return isinstance(rays, DeviceRays)
 
 
 def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:

@@ -22,6 +22,8 @@ stays conservative.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from rayaccel._jit import cpu_inline
@@ -55,12 +57,12 @@ def ray_prologue_py(origin, direction, tmin, tmax, r, root_box):
     valid = (
         t_lo <= tmax[r]
         and not (dx == 0 and dy == 0 and dz == 0)
-        and np.isfinite(dx)
-        and np.isfinite(dy)
-        and np.isfinite(dz)
-        and np.isfinite(ox)
-        and np.isfinite(oy)
-        and np.isfinite(oz)
+        and math.isfinite(dx)
+        and math.isfinite(dy)
+        and math.isfinite(dz)
+        and math.isfinite(ox)
+        and math.isfinite(oy)
+        and math.isfinite(oz)
     )
     # Reciprocal direction and the near/far plane offsets of the interleaved boxes.
     ix = ONE32 / dx

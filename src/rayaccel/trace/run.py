@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from contextvars import ContextVar
 from typing import Any, TypeVar
 
 import numba
@@ -24,6 +25,12 @@ from rayaccel.trace.skeleton import trace_kernel
 
 #: Batches smaller than this run on the calling thread (no parallel launch overhead).
 PARALLEL_MIN_RAYS = 4096
+
+#: Where :func:`run_trace` launches: ``None`` for the CPU kernels, or a target whose
+#: ``run(kernel_for, layout_arrays, rays, query, stats, overflow_hint)`` launches the same
+#: per-ray body elsewhere (the GPU: :func:`rayaccel.cuda.device.on_cuda` sets it for one
+#: query, so every traversal derives its layout once for both targets).
+TRACE_TARGET: ContextVar[Any] = ContextVar("rayaccel_trace_target", default=None)
 
 _Layout = TypeVar("_Layout")
 
@@ -91,6 +98,9 @@ def run_trace(
     TraversalOverflowError
         Some rays ran out of traversal stack.
     """
+    target = TRACE_TARGET.get()
+    if target is not None:
+        return target.run(kernel_for, layout_arrays, rays, query, stats, overflow_hint)  # type: ignore[no-any-return]
     constant = query_constant(query)
     n = rays.n_rays
     # Hits in the rays' precision: float64 rays compile float64 kernels (kernels/real.py).

@@ -1,0 +1,61 @@
+"""Compile every CUDA traversal kernel to PTX for sm_90 with NVVM, no GPU (run by a test).
+
+Runs in its own process with ``NUMBA_ENABLE_CUDASIM=0`` (the test process runs the
+simulator). Prints one ``<builder> <traversal> <query> <stats> ok`` line per kernel and
+exits non-zero on the first failure, or with :data:`NO_NVVM` when NVVM is not installed.
+"""
+
+from __future__ import annotations
+
+import sys
+
+#: Exit status when NVVM is absent (the test then skips, saying why).
+NO_NVVM = 3
+
+#: (builder, traversal) of every CUDA traversal; grids by each structure its walk handles.
+CASES = [
+    ("bvh2.binned_sah", "bvh2.stack"),
+    ("bvh2.binned_sah", "bvh2.restart_trail"),
+    ("bvh2.binned_sah", "bvh2.parent_link"),
+    ("bvh2.binned_sah", "bvh2.bitstack"),
+    ("bvh2.binned_sah", "bvh2.perfect_hash"),
+    ("kdtree.sah", "kdtree.stack"),
+    ("kdtree.sah", "kdtree.ropes"),
+    ("kdtree.sah", "kdtree.short_stack"),
+    ("kdtree.sah", "kdtree.restart"),
+    ("kdtree.sah", "kdtree.backtrack"),
+    ("grid.uniform", "grid.dda"),
+    ("grid.two_level", "grid.dda"),
+    ("grid.irregular", "grid.dda"),
+    ("grid.macro_regions", "grid.skip"),
+    ("grid.distance", "grid.skip"),
+    ("grid.mipmap", "grid.skip"),
+]
+
+
+def main() -> int:
+    try:
+        from numba.cuda.cudadrv.nvvm import NVVM
+
+        NVVM()
+    except Exception as exc:
+        print(f"NVVM not installed ({type(exc).__name__}); pip install 'rayaccel[gpu]'")
+        return NO_NVVM
+    import rayaccel as ra
+    from rayaccel.cuda.report import compile_ptx
+    from rayaccel.scene import procedural
+
+    mesh = procedural.cornell_box()
+    for builder, traversal in CASES:
+        accel = ra.build(mesh, builder)
+        for query, stats in (("closest", False), ("any", False), ("closest", True)):
+            ptx = compile_ptx(accel, traversal, query, stats)
+            if ".entry" not in ptx or "sm_90" not in ptx:
+                print(f"{builder} {traversal} {query} {stats} no kernel entry in the PTX")
+                return 1
+            print(f"{builder} {traversal} {query} {stats} ok", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
