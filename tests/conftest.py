@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-# The CUDA traversals' tests (tests/cuda) run under numba's CUDA simulator unless a GPU is
+# The CUDA traversals' tests (tests/gpu) run under numba's CUDA simulator unless a GPU is
 # asked for; numba reads the switch once, when numba.cuda is first imported.
 if os.environ.get("RAYACCEL_CUDA_TESTS") != "gpu":
     os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
@@ -30,16 +30,11 @@ if SHARED_SCENES.is_dir() and not os.environ.get("RAYACCEL_SCENE_PATH"):
     os.environ["RAYACCEL_SCENE_PATH"] = str(SHARED_SCENES)
 
 settings.register_profile(
-    "default",
-    deadline=None,
-    max_examples=40,
-    derandomize=True,
+    "default", deadline=None, max_examples=40, derandomize=True,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 settings.register_profile(
-    "full",
-    deadline=None,
-    max_examples=400,
+    "full", deadline=None, max_examples=400,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 settings.load_profile("default")
@@ -47,15 +42,8 @@ settings.load_profile("default")
 #: Procedural scenes (always available).
 PROCEDURAL_SCENES = ("cornell-box", "soup", "sphereflake", "teapot", "teapot-in-stadium")
 #: The shared benchmark files (skipped when absent).
-FILE_SCENES = (
-    "CornellBox-Original",
-    "stanford-bunny",
-    "sponza_dabrovic",
-    "living_room",
-    "staircase",
-    "salle_de_bain",
-    "kitchen",
-)
+FILE_SCENES = ("CornellBox-Original", "stanford-bunny", "sponza_dabrovic", "living_room",
+               "staircase", "salle_de_bain", "kitchen")
 #: Oracle budget per scene: rays × triangles (about 1.5 s on two cores).
 ORACLE_BUDGET = 3.0e8
 MAX_RAYS = 1800
@@ -63,9 +51,8 @@ MIN_RAYS = 300
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
-    parser.addoption(
-        "--full", action="store_true", help="run slow tests at full size (more rays and examples)"
-    )
+    parser.addoption("--full", action="store_true",
+                     help="run slow tests at full size (more rays and examples)")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -192,9 +179,8 @@ def _make_ray_set(cache: SceneCache, name: str):
         shadow,
     ]
     share = n_total / sum(s.n_rays for s in sets)
-    parts = [
-        reference.subsample(s, max(int(s.n_rays * share), 8), seed=i) for i, s in enumerate(sets)
-    ]
+    parts = [reference.subsample(s, max(int(s.n_rays * share), 8), seed=i)
+             for i, s in enumerate(sets)]
     return reference.concat(*parts)
 
 
@@ -259,25 +245,16 @@ class _CompileLog:
         def top(d: dict[str, float]) -> dict[str, float]:
             return {k: round(v, 2) for k, v in sorted(d.items(), key=lambda kv: -kv[1])}
 
-        Path(self.path).write_text(
-            json.dumps(
-                {
-                    "total": round(sum(self.kernels.values()), 1),
-                    "kernels": top(self.kernels),
-                    "tests": top(self.tests),
-                },
-                indent=1,
-            )
-        )
+        Path(self.path).write_text(json.dumps(
+            {"total": round(sum(self.kernels.values()), 1), "kernels": top(self.kernels),
+             "tests": top(self.tests)}, indent=1))
 
 
 _COMPILE_LOG = (
-    _CompileLog(
-        os.environ["RAYACCEL_COMPILE_LOG"]
-        + (f".{os.environ['PYTEST_XDIST_WORKER']}" if os.environ.get("PYTEST_XDIST_WORKER") else "")
-    )
-    if os.environ.get("RAYACCEL_COMPILE_LOG")
-    else None
+    _CompileLog(os.environ["RAYACCEL_COMPILE_LOG"]
+                + (f".{os.environ['PYTEST_XDIST_WORKER']}"
+                   if os.environ.get("PYTEST_XDIST_WORKER") else ""))
+    if os.environ.get("RAYACCEL_COMPILE_LOG") else None
 )
 
 

@@ -25,23 +25,34 @@ from rayaccel import registry
 SRC = Path(rayaccel.__file__).resolve().parent
 
 LAYERS: dict[str, int] = {
-    "_jit": 0, "dtypes": 0, "errors": 0, "counters": 0, "config": 0, "_variant": 0,
+    "_jit": 0,
+    "dtypes": 0,
+    "errors": 0,
+    "counters": 0,
+    "config": 0,
+    "_variant": 0,
     "queries": 0,  # not in STYLE §2: query kinds, shared by the oracle and every family
     "_hugepages": 0,  # not in STYLE §2: huge-page advice for arrays allocated in kernels
     "_atomic": 0,  # not in STYLE §2 yet: stdlib-only atomic file writes
     "_work": 0,  # not in STYLE §2: work distribution of parallel kernels (shared counter)
     "validation": 0,  # not in STYLE §2: argument checks shared by every entry point
     "kernels": 1,
-    "scene": 2, "rays": 2,
+    "scene": 2,
+    "rays": 2,
     "trace": 3,  # not in STYLE §2 yet: what every family's traversals share
-    "bvh": 4, "kdtree": 4, "grid": 4,
+    "bvh": 4,
+    "kdtree": 4,
+    "grid": 4,
     "cuda": 5,
-    "registry": 6, "metrics": 6,
+    "registry": 6,
+    "metrics": 6,
     "chunked": 6,  # not in STYLE §2: huge numpy batches in chunks, Dask arrays of rays
     "refit": 6,  # not in STYLE §2: refit or rebuild a structure for moved vertices
     "persist": 6,  # not in STYLE §2: saved accel files (npz + JSON header, hashed)
     "api": 7,
-    "render": 8, "bench": 8, "precompile": 8,
+    "render": 8,
+    "bench": 8,
+    "precompile": 8,
     "trimesh": 8,  # not in STYLE §2: trimesh's ray interface on a BVH (drop-in for mesh.ray)
     "study": 9,  # not in STYLE §2: the thesis's study (path-traced rays, sweeps, reports)
     "cli": 10,
@@ -116,8 +127,9 @@ def test_imports_respect_layers(module, path):
             continue
         mine, theirs = LAYERS[own], LAYERS[other]
         if theirs > mine:
-            problems.append(f"line {line}: layer {mine} ({own}) imports upward: {target} "
-                            f"(layer {theirs})")
+            problems.append(
+                f"line {line}: layer {mine} ({own}) imports upward: {target} (layer {theirs})"
+            )
         elif theirs == mine and mine != FOUNDATION:
             problems.append(f"line {line}: {own} imports its sibling {other} ({target})")
     assert not problems, f"{module}:\n" + "\n".join(problems)
@@ -129,16 +141,22 @@ def _private_imports(path: Path) -> list[tuple[int, str]]:
     found = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("rayaccel"):
-            found += [(node.lineno, f"{node.module}.{a.name}") for a in node.names
-                      if a.name.startswith("_") and not a.name.startswith("__")]
+            found += [
+                (node.lineno, f"{node.module}.{a.name}")
+                for a in node.names
+                if a.name.startswith("_") and not a.name.startswith("__")
+            ]
     return found
 
 
 TEST_FILES = sorted(Path(__file__).resolve().parent.rglob("*.py"))
 
 
-@pytest.mark.parametrize("path", [p for _, p in MODULES] + TEST_FILES,
-                         ids=[m for m, _ in MODULES] + [p.name for p in TEST_FILES])
+@pytest.mark.parametrize(
+    "path",
+    [p for _, p in MODULES] + TEST_FILES,
+    ids=[m for m, _ in MODULES] + [p.name for p in TEST_FILES],
+)
 def test_no_private_names_imported(path):
     found = _private_imports(path)
     assert not found, f"{path.name} imports private names: {found}"
@@ -146,8 +164,9 @@ def test_no_private_names_imported(path):
 
 def test_private_import_checker(tmp_path):
     bad = tmp_path / "bad.py"
-    bad.write_text("from rayaccel.bvh.builders.sbvh import _split, public\n"
-                   "from rayaccel import __version__\n")
+    bad.write_text(
+        "from rayaccel.bvh.builders.sbvh import _split, public\nfrom rayaccel import __version__\n"
+    )
     assert _private_imports(bad) == [(1, "rayaccel.bvh.builders.sbvh._split")]
 
 
@@ -172,8 +191,9 @@ def test_checker_catches_violations(tmp_path):
         "if TYPE_CHECKING:\n    from rayaccel.registry import get\n"
     )
     targets = sorted(t for _, t in _imports(bad, "rayaccel.scene.bad"))
-    assert targets == sorted(["rayaccel.api", ".", "rayaccel.rays.batch", "typing",
-                              "rayaccel.registry"])
+    assert targets == sorted(
+        ["rayaccel.api", ".", "rayaccel.rays.batch", "typing", "rayaccel.registry"]
+    )
 
 
 def _registers(path: Path) -> bool:
@@ -189,14 +209,12 @@ def _registers(path: Path) -> bool:
 
 
 def _variant_modules() -> set[str]:
-    """Every module that registers a variant, and every ``cuda`` module, under src."""
-    wanted = set()
-    for module, path in MODULES:
-        name = path.stem
-        in_cuda = _component(module) == "cuda" and not name.startswith("_")
-        if _registers(path) or (in_cuda and name not in EXEMPT):
-            wanted.add(module)
-    return wanted
+    """Every module that registers a variant under src.
+
+    (The CUDA kernels register nothing: ``device="cuda"`` runs a registered traversal's
+    own per-ray body, see :mod:`rayaccel.cuda`.)
+    """
+    return {module for module, path in MODULES if _registers(path)}
 
 
 def test_builtin_modules_list_every_variant_module():
@@ -213,8 +231,6 @@ def test_builtin_modules_exist_and_register():
     registry.keys()  # load
     registering = {v.func.__module__ for v in REGISTRY.values()}
     for module in registry.BUILTIN_MODULES:
-        if module.startswith("rayaccel.cuda"):
-            continue  # registers only when numba.cuda imports
         importlib.import_module(module)
         assert module in registering, f"{module} registers no variant"
     # Every registered variant comes from a listed module (nothing registers by accident).

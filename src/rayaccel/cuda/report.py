@@ -37,10 +37,11 @@ class _Recorder:
 
 def kernel_plan(accel: Any, traversal: str, **options: Any) -> tuple[Any, Any, Any]:
     """Return ``(make_scratch, trace_rays, layout_arrays)`` of ``traversal`` on ``accel``."""
-    from rayaccel import registry
+    from rayaccel._variant import REGISTRY
     from rayaccel.cuda.device import body_of
 
-    variant = registry.get(traversal, "traversal")
+    # The accel was built through the registry, so every variant module is loaded.
+    variant = REGISTRY[traversal]
     recorder = _Recorder()
     token = TRACE_TARGET.set(recorder)
     try:
@@ -117,3 +118,68 @@ def kernel_resources(kernel: Any, block_threads: int) -> dict[str, Any]:
     resources["blocks_per_sm"] = blocks / sms
     resources["occupancy"] = blocks / sms * block_threads / per_sm
     return resources
+
+
+#: Hopper's per-multiprocessor limits (sm_90, CUDA C Programming Guide, table 21).
+SM90_REGISTERS = 65536
+SM90_MAX_WARPS = 64
+SM90_MAX_BLOCKS = 32
+#: Registers are allocated per warp in units of this many.
+REGISTER_UNIT = 256
+
+
+def find_ptxas() -> str | None:
+    """Return the ``ptxas`` of the pip CUDA toolkit (``cuda-toolkit[nvcc]``), else the PATH's.
+
+    The pip toolkit's comes first: it matches the pip NVVM that wrote the PTX (an older
+    system ``ptxas`` rejects a newer PTX version).
+    """
+    import glob
+    import shutil
+    import site
+
+    for root in [*site.getsitepackages(), site.getusersitepackages()]:
+        hits = sorted(glob.glob(f"{root}/nvidia/*/bin/ptxas"))
+        if hits:
+            return hits[-1]
+    return shutil.which("ptxas")
+
+
+def ptxas_resources(ptx: str, arch: str = "sm_90", block_threads: int = 128) -> dict[str, Any]:
+    """Assemble ``ptx`` with ``ptxas -v`` and return its registers, stack, spills, occupancy.
+
+    ``occupancy`` is the resident fraction of the multiprocessor's 64 warps that blocks of
+    ``block_threads`` reach with that many registers per thread (the register file is the
+    limit these kernels meet; they use no shared memory).
+    """
+    import re
+    import subprocess
+    import tempfile
+
+    ptxas = find_ptxas()
+    if ptxas is None:
+        raise FileNotFoundError("ptxas not found: pip install 'rayaccel[gpu]'")
+    with tempfile.TemporaryDirectory() as folder:
+        source = f"{folder}/kernel.ptx"
+        with open(source, "w") as handle:
+            handle.write(ptx)
+        run = subprocess.run(
+            [ptxas, "-v", f"-arch={arch}", source, "-o", f"{folder}/kernel.cubin"],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+    log = run.stderr + run.stdout
+    registers = int(re.search(r"Used (\d+) registers", log).group(1))  # type: ignore[union-attr]
+    frame = re.search(
+        r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads", log
+    )
+    stack, spill_stores, spill_loads = (int(g) for g in frame.groups()) if frame else (0, 0, 0)
+    warps = block_threads // 32
+    per_warp = -(-registers * 32 // REGISTER_UNIT) * REGISTER_UNIT
+    blocks = min(SM90_REGISTERS // (per_warp * warps), SM90_MAX_WARPS // warps, SM90_MAX_BLOCKS)
+    return {
+        "registers": registers,
+        "stack_bytes": stack,
+        "spill_stores": spill_stores,
+        "spill_loads": spill_loads,
+        "occupancy": blocks * warps / SM90_MAX_WARPS,
+    }
