@@ -1,6 +1,6 @@
 """Registers, local memory (stack frame, spills) and occupancy of every CUDA traversal kernel.
 
-Compiles each kernel of :data:`rayaccel.cuda.device.CUDA_TRAVERSALS` to PTX for sm_90
+Compiles each kernel of :data:`rayaccel.cuda.report.KERNEL_CASES` to PTX for sm_90
 with NVVM and assembles it with ``ptxas -v`` (:func:`rayaccel.cuda.report.ptxas_resources`):
 no GPU needed, only the pip CUDA toolkit of the ``gpu`` extra (``pip install 'rayaccel[gpu]'``).
 Occupancy is what the register count allows for blocks of 128 threads on a Hopper
@@ -14,30 +14,16 @@ from __future__ import annotations
 import sys
 
 import rayaccel
-from rayaccel.cuda.report import compile_ptx, ptxas_resources
+from rayaccel.cuda.report import KERNEL_CASES, compile_ptx, ptxas_resources
 from rayaccel.cuda.skeleton import BLOCK_THREADS
 from rayaccel.scene import procedural
-
-#: (builder, traversal): each CUDA traversal once, the grid DDA over both grids it walks.
-KERNELS = [
-    ("bvh2.binned_sah", "bvh2.stack"),
-    ("bvh2.binned_sah", "bvh2.restart_trail"),
-    ("bvh2.binned_sah", "bvh2.parent_link"),
-    ("bvh2.binned_sah", "bvh2.bitstack"),
-    ("bvh2.binned_sah", "bvh2.perfect_hash"),
-    ("kdtree.sah", "kdtree.stack"),
-    ("kdtree.sah", "kdtree.ropes"),
-    ("kdtree.sah", "kdtree.short_stack"),
-    ("grid.uniform", "grid.dda"),
-    ("grid.two_level", "grid.dda"),
-]
 
 
 def main() -> int:
     mesh = procedural.cornell_box()
     print("| kernel | query | registers | stack B | spill st/ld B | occupancy |")
     print("|---|---|---:|---:|---:|---:|")
-    for builder, traversal in KERNELS:
+    for builder, traversal in KERNEL_CASES:
         accel = rayaccel.build(mesh, builder)
         label = traversal if not builder.startswith("grid") else f"{traversal} ({builder})"
         for query in ("closest", "any"):

@@ -11,28 +11,13 @@ from __future__ import annotations
 
 import sys
 
+from rayaccel.cuda.report import KERNEL_CASES
+
 #: Exit status when NVVM is absent (the test then skips, saying why).
 NO_NVVM = 3
 
-#: (builder, traversal) of every CUDA traversal; grids by each structure its walk handles.
-CASES = [
-    ("bvh2.binned_sah", "bvh2.stack"),
-    ("bvh2.binned_sah", "bvh2.restart_trail"),
-    ("bvh2.binned_sah", "bvh2.parent_link"),
-    ("bvh2.binned_sah", "bvh2.bitstack"),
-    ("bvh2.binned_sah", "bvh2.perfect_hash"),
-    ("kdtree.sah", "kdtree.stack"),
-    ("kdtree.sah", "kdtree.ropes"),
-    ("kdtree.sah", "kdtree.short_stack"),
-    ("kdtree.sah", "kdtree.restart"),
-    ("kdtree.sah", "kdtree.backtrack"),
-    ("grid.uniform", "grid.dda"),
-    ("grid.two_level", "grid.dda"),
-    ("grid.irregular", "grid.dda"),
-    ("grid.macro_regions", "grid.skip"),
-    ("grid.distance", "grid.skip"),
-    ("grid.mipmap", "grid.skip"),
-]
+#: (builder, traversal) of every CUDA kernel (:data:`rayaccel.cuda.report.KERNEL_CASES`).
+CASES = KERNEL_CASES
 
 
 def main() -> int:

@@ -21,6 +21,28 @@ from rayaccel.queries import query_constant
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.trace.run import TRACE_TARGET
 
+#: ``(builder, traversal)`` of every CUDA kernel: each traversal of
+#: :data:`rayaccel.cuda.device.CUDA_TRAVERSALS` on its structure's default tree, and the
+#: grid walks on every grid class they handle (each class has its own layout and kernel).
+KERNEL_CASES = [
+    ("bvh2.binned_sah", "bvh2.stack"),
+    ("bvh2.binned_sah", "bvh2.restart_trail"),
+    ("bvh2.binned_sah", "bvh2.parent_link"),
+    ("bvh2.binned_sah", "bvh2.bitstack"),
+    ("bvh2.binned_sah", "bvh2.perfect_hash"),
+    ("kdtree.sah", "kdtree.stack"),
+    ("kdtree.sah", "kdtree.ropes"),
+    ("kdtree.sah", "kdtree.short_stack"),
+    ("kdtree.sah", "kdtree.restart"),
+    ("kdtree.sah", "kdtree.backtrack"),
+    ("grid.uniform", "grid.dda"),
+    ("grid.two_level", "grid.dda"),
+    ("grid.irregular", "grid.dda"),
+    ("grid.macro_regions", "grid.skip"),
+    ("grid.distance", "grid.skip"),
+    ("grid.mipmap", "grid.skip"),
+]
+
 
 class _Recorder:
     """A trace target that records the launch instead of running it."""
