@@ -7,13 +7,14 @@ import pytest
 
 from rayaccel.errors import InvalidInputError, SceneFileError
 from rayaccel.rays import RayBatch, load_ray_metadata, load_rays, save_rays
+from rayaccel.validation import COORDINATE_LIMIT
 
 
 def _rays(n=257, seed=0):
     rng = np.random.default_rng(seed)
     origin = rng.normal(size=(n, 3)).astype(np.float32)
     direction = rng.normal(size=(n, 3)).astype(np.float32)
-    origin[0] = [-0.0, np.float32(1e-45), np.finfo(np.float32).max]
+    origin[0] = [-0.0, np.float32(1e-45), COORDINATE_LIMIT["float32"]]  # the largest in range
     direction[1] = [0.0, -0.0, 1.0]
     tmin = rng.uniform(0, 1e-3, n).astype(np.float32)
     tmax = np.where(rng.random(n) < 0.5, np.inf, rng.uniform(1, 10, n)).astype(np.float32)

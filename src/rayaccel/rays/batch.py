@@ -9,6 +9,16 @@ not be normalised; ``t`` is measured in units of the direction's length. Rays wi
 a zero-length or non-finite direction, a non-finite origin, or ``tmin > tmax`` are
 kept in the batch and defined to miss (the traversal never enters them).
 
+Numeric range (docs/reliability.md, "Numbers"; bounds in :mod:`rayaccel.validation`). A
+finite origin coordinate beyond ``2^30`` (``2^62`` in float64), a nonzero direction whose
+largest component is below ``2^-30`` (``2^-62``), or a finite direction component that
+overflows the precision is refused with an :class:`InvalidInputError` naming the row: in
+range, no product of the intersection tests overflows and every hit distance is finite.
+Direction components below the precision's smallest normal number are flushed to
+(signed) zero, so the slab test, which divides by them, and the triangle test see the
+same ray. ``tmin``/``tmax`` beyond float32's range round to ``-inf``/``inf``, which keeps
+the same hits.
+
 A :class:`HitBatch` is what a closest-hit query returns: ``t`` (``inf`` on a miss),
 ``prim`` (``-1`` on a miss) and the barycentrics ``u, v`` of the hit point
 ``(1-u-v)·A + u·B + v·C``; ``stats`` maps counter names to ``(n,)`` int32 arrays
@@ -34,10 +44,17 @@ from rayaccel.dtypes import (
     check_precision,
 )
 from rayaccel.errors import InvalidInputError
-from rayaccel.validation import reject_masked
+from rayaccel.validation import check_coordinates, check_directions, reject_masked
 
 
-def _as_vectors(name: str, value: object, n: int | None, dtype: type = REAL) -> FloatArray:
+def _as_vectors(
+    name: str, value: object, n: int | None, dtype: type = REAL
+) -> tuple[npt.NDArray[Any], FloatArray]:
+    """Return ``(array, coerced)``: the checked input and its C-contiguous ``dtype`` copy.
+
+    Values beyond ``dtype``'s range become ``inf`` in ``coerced`` without a warning; the
+    range checks of :mod:`rayaccel.validation` compare the two and refuse them.
+    """
     try:
         array = np.asarray(value)
     except (TypeError, ValueError) as exc:
@@ -50,7 +67,9 @@ def _as_vectors(name: str, value: object, n: int | None, dtype: type = REAL) -> 
         raise InvalidInputError(f"{name}: expected a float array, got dtype {array.dtype}")
     if n is not None and array.shape[0] != n:
         raise InvalidInputError(f"{name}: expected {n} rows to match origins, got {array.shape[0]}")
-    return np.ascontiguousarray(array, dtype=dtype)
+    with np.errstate(over="ignore"):
+        coerced: FloatArray = np.ascontiguousarray(array, dtype=dtype)
+    return array, coerced
 
 
 def _as_interval(name: str, value: object, n: int, dtype: type = REAL) -> FloatArray:
@@ -73,7 +92,10 @@ def _as_interval(name: str, value: object, n: int, dtype: type = REAL) -> FloatA
         raise InvalidInputError(f"{name}: expected a scalar or shape ({n},), got {array.shape}")
     if np.isnan(array).any():
         raise InvalidInputError(f"{name}: contains NaN at index {int(np.argmax(np.isnan(array)))}")
-    return np.ascontiguousarray(array, dtype=dtype)
+    # Beyond float32's range a bound rounds to +-inf: no hit of a ray in range lies that
+    # far (docs/reliability.md, "Numbers"), so the interval keeps the same hits.
+    with np.errstate(over="ignore"):
+        return np.ascontiguousarray(array, dtype=dtype)
 
 
 @dataclass(frozen=True, slots=True, eq=False, init=False)
@@ -90,6 +112,13 @@ class RayBatch:
     precision : {"float32", "float64"}
         The dtype of every array. An accel converts a batch to its mesh's precision
         (:attr:`rayaccel.scene.mesh.TriangleMesh.precision`) before tracing it.
+
+    Raises
+    ------
+    InvalidInputError
+        Wrong shapes or dtypes, NaN in ``tmin``/``tmax``, or values outside the numeric
+        range of ``precision`` (see the module docstring); the message names the
+        argument, the row and the range.
     """
 
     origin: FloatArray
@@ -106,7 +135,8 @@ class RayBatch:
         *,
         precision: str = "float32",
     ) -> None:
-        dtype = np.float64 if check_precision(precision) == "float64" else REAL
+        precision = check_precision(precision)
+        dtype = np.float64 if precision == "float64" else REAL
         reject_masked("origins", origin)
         reject_masked("directions", direction)
         origin_raw = np.asarray(origin)
@@ -116,9 +146,14 @@ class RayBatch:
             n = origin_raw.shape[0]
         elif direction_raw.ndim == 2:
             n = direction_raw.shape[0]
-        origin_f32 = _as_vectors("origins", origin_raw, n, dtype)
+        origin_in, origin_f32 = _as_vectors("origins", origin_raw, n, dtype)
         n = origin_f32.shape[0]
-        direction_f32 = _as_vectors("directions", direction_raw, n, dtype)
+        direction_in, direction_f32 = _as_vectors("directions", direction_raw, n, dtype)
+        # The numeric range (docs/reliability.md, "Numbers"): finite origins within
+        # COORDINATE_LIMIT, nonzero directions not below DIRECTION_FLOOR, subnormal
+        # direction components flushed to zero.
+        check_coordinates("origins", origin_in, origin_f32, precision, "row")
+        direction_f32 = check_directions(direction_in, direction_f32, precision)
         # The dataclass is frozen: fields are set once, here, through object.__setattr__.
         object.__setattr__(self, "origin", origin_f32)
         object.__setattr__(self, "direction", direction_f32)

@@ -2,7 +2,9 @@
 
 A :class:`TriangleMesh` holds a float32 ``(V, 3)`` vertex array and an int32
 ``(F, 3)`` face array, both C-contiguous, validated once at construction:
-non-finite vertices are rejected with the offending index, face indices must lie
+non-finite vertices are rejected with the offending index, and so are coordinates
+beyond the range the precision traces (``|x| <= 2^30`` in float32, ``2^62`` in
+float64: :mod:`rayaccel.validation`, docs/reliability.md "Numbers"); face indices must lie
 in ``[0, V)``, and a mesh must have at least one triangle. Zero-area triangles
 are kept (a correct ray/triangle test never reports a hit on them).
 
@@ -24,10 +26,18 @@ import numpy.typing as npt
 
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray, check_precision
 from rayaccel.errors import InvalidInputError
-from rayaccel.validation import reject_masked
+from rayaccel.validation import NORMAL_FLOOR, check_coordinates, reject_masked
 
 
-def _coerce_vertices(vertices: object) -> FloatArray:
+def _coerce_vertices(
+    vertices: object, precision: str
+) -> tuple[FloatArray, npt.NDArray[np.float64] | None]:
+    """Return the float32 vertices and, for a float64 mesh, the float64 ones.
+
+    Both are checked against the numeric range of ``precision``
+    (:data:`rayaccel.validation.COORDINATE_LIMIT`); a float64 mesh's range lies within
+    float32's, so its float32 rounding (what builders bound) is finite too.
+    """
     reject_masked("vertices", vertices)
     try:
         array = np.asarray(vertices)
@@ -44,11 +54,15 @@ def _coerce_vertices(vertices: object) -> FloatArray:
             f"vertices: vertex {bad} is not finite ({array[bad].tolist()}); "
             f"{int((~finite.all(axis=1)).sum())} non-finite vertices in all"
         )
-    coerced = np.ascontiguousarray(array, dtype=REAL)
-    if not np.isfinite(coerced).all():
-        bad = int(np.argwhere(~np.isfinite(coerced).all(axis=1))[0, 0])
-        raise InvalidInputError(f"vertices: vertex {bad} overflows float32 ({array[bad].tolist()})")
-    return coerced
+    with np.errstate(over="ignore"):  # beyond float32's range: refused below
+        coerced = np.ascontiguousarray(array, dtype=REAL)
+    exact = None
+    if precision == "float64":
+        exact = np.ascontiguousarray(array, dtype=np.float64)
+        check_coordinates("vertices", array, exact, precision, "vertex")
+    else:
+        check_coordinates("vertices", array, coerced, precision, "vertex")
+    return coerced, exact
 
 
 def _coerce_faces(faces: object, n_vertices: int) -> IntArray:
@@ -105,8 +119,10 @@ class TriangleMesh:
     Raises
     ------
     InvalidInputError
-        Wrong shapes, non-finite vertices (the index is named), out-of-range
-        indices (the face is named), an empty face list or an unknown precision.
+        Wrong shapes, non-finite vertices (the index is named), coordinates beyond
+        ``2^30`` (``2^62`` for a float64 mesh; the vertex and the range are named),
+        out-of-range indices (the face is named), an empty face list or an unknown
+        precision.
     """
 
     vertices: FloatArray
@@ -126,10 +142,8 @@ class TriangleMesh:
         precision: str = "float32",
     ) -> None:
         check_precision(precision)
-        coerced = _coerce_vertices(vertices)
-        exact = None
-        if precision == "float64":
-            exact = np.ascontiguousarray(np.asarray(vertices), dtype=np.float64)
+        coerced, exact = _coerce_vertices(vertices, precision)
+        if exact is not None:
             exact.flags.writeable = False
         object.__setattr__(self, "precision", precision)
         object.__setattr__(self, "vertices64", exact)
@@ -166,11 +180,19 @@ class TriangleMesh:
         corners of a collinear triangle can round off their line and give a bogus hit.
         Bounding boxes are built from :meth:`triangles`, so they still enclose the
         original corners.
+
+        So is a triangle too small for the rows' precision: one whose doubled area (the
+        sum of the cross product's magnitudes, in float64) is below the smallest normal
+        number (``2^-126`` for float32 rows, edges under about ``1e-19``). The test's
+        determinant is at most that sum, so its reciprocal would overflow: the test
+        would miss it, or report ``t = -inf`` when ``tmin = -inf``. It is zero-area by
+        definition instead (docs/reliability.md, "Numbers"); a float64 mesh hits it.
         """
         tri = self.triangles() if self.vertices64 is None else self.vertices64[self.faces]
         wide = tri.astype(np.float64)
         cross = np.cross(wide[:, 1] - wide[:, 0], wide[:, 2] - wide[:, 0])
-        degenerate = ~np.any(cross != 0.0, axis=1)
+        doubled_area = np.abs(cross[:, 0]) + np.abs(cross[:, 1]) + np.abs(cross[:, 2])
+        degenerate = ~(doubled_area >= NORMAL_FLOOR[self.precision])
         rows: RealArray = tri.reshape(-1, 9).copy()
         rows[degenerate, 3:6] = rows[degenerate, 0:3]
         rows[degenerate, 6:9] = rows[degenerate, 0:3]
