@@ -76,6 +76,7 @@ def test_trace_identical_for_1_and_2_threads(threads, scenes_cache, full, builde
 CONCURRENT_SCRIPT = textwrap.dedent(
     """
     import dataclasses
+    import threading
     from concurrent.futures import ThreadPoolExecutor
 
     import numba
@@ -130,6 +131,44 @@ CONCURRENT_SCRIPT = textwrap.dedent(
                 value = getattr(t, field.name)
                 if isinstance(value, np.ndarray):
                     assert np.array_equal(value, getattr(trees[0], field.name)), field.name
+    # Refit (and a rebuild of another accel) while other threads query: every answer is
+    # exactly the tree's before or after some refit, never a mix.
+    accel = rayaccel.build(mesh, "bvh2.binned_sah")
+    states = [mesh.vertices, mesh.vertices * np.float32(1.25) + np.float32(0.1)]
+    probe = batches[1]
+    answers = set()
+    for vertices in states:
+        accel.refit(vertices)
+        for traversal in ("bvh2.stack", "bvh2.wide"):
+            hits = accel.trace(probe, traversal=traversal)
+            answers.add((hits.t.tobytes(), hits.prim.tobytes()))
+    stop = threading.Event()
+
+    def refitter():
+        n = 0
+        while not stop.is_set():
+            accel.refit(states[n % 2], rebuild_if_worse=1e9 if n % 3 else None)
+            n += 1
+        return n
+
+    def builder():
+        n = 0
+        while not stop.is_set():
+            rayaccel.build(mesh, "bvh2.binned_sah")
+            n += 1
+        return n
+
+    def query(i):
+        hits = accel.trace(probe, traversal=("bvh2.stack", "bvh2.wide")[i % 2])
+        return (hits.t.tobytes(), hits.prim.tobytes()) in answers
+
+    with ThreadPoolExecutor(6) as pool:
+        refits = pool.submit(refitter)
+        builds = pool.submit(builder)
+        results = list(pool.map(query, range(60)))
+        stop.set()
+        assert refits.result() >= 1 and builds.result() >= 1
+    assert all(results), f"{results.count(False)} answers mixed two trees"
     print("OK", numba.threading_layer())
     """
 )

@@ -394,7 +394,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from rayaccel.bench.peers import parse_peers
     from rayaccel.bench.raysets import parse_kinds
 
+    done: dict[Any, Any] = {}
+    if args.resume:
+        if not args.json:
+            raise InvalidInputError("--resume: needs --json, the results file to complete")
+        if Path(args.json).exists():
+            done = harness.completed_cells(report.read_jsonl(args.json))
     config = harness.BenchConfig(
+        done=done,
         scenes=list(args.scenes),
         builders=_builder_keys(args.accel, default_all=True),
         traversals=_split_list(args.traversal),
@@ -709,6 +716,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", metavar="PATH", help="append JSONL records here (atomically)")
+    p.add_argument("--resume", action="store_true",
+                   help="complete the --json file of an interrupted run of this command: "
+                        "cells it holds are not measured again")  # fmt: skip
     p.add_argument("--markdown", action="store_true", help="print the table as markdown")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--option", action="append", metavar="K=V",

@@ -44,7 +44,7 @@ import platform
 import subprocess
 import time
 import uuid
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -76,6 +76,26 @@ PEER_MISMATCH_FRACTION = 0.02
 WARMUP_RAYS = 2048
 
 Record = dict[str, Any]
+
+
+#: A measurement's cell: scene label, system, thread count, ray set.
+CellKey = tuple[str, str, int, str]
+
+
+def cell_key(record: Mapping[str, Any]) -> CellKey:
+    """Return the cell a ``trace`` or ``invalid`` record measured."""
+    return (str(record.get("scene")), str(record.get("system")), int(record.get("threads") or 0),
+            str(record.get("ray_type")))  # fmt: skip
+
+
+def completed_cells(records: Iterable[Mapping[str, Any]]) -> dict[CellKey, Record]:
+    """Return the finished cells of earlier records (``trace`` or ``invalid``), by cell.
+
+    ``rayaccel bench --resume`` passes them as :attr:`BenchConfig.done`, so a run that was
+    interrupted (SIGINT, SIGKILL: the results file only ever holds whole records, see
+    :class:`rayaccel.bench.report.JsonlWriter`) completes its set without repeating work.
+    """
+    return {cell_key(r): dict(r) for r in records if r.get("record") in ("trace", "invalid")}
 
 
 @dataclass(frozen=True)
@@ -111,6 +131,10 @@ class BenchConfig:
         Seed of the ray sets and of the validation sample.
     warmup_triangles : int
         Size of the compile warm-up mesh.
+    done : mapping
+        Records of an earlier, interrupted run of the same command, by :func:`cell_key`
+        (:func:`completed_cells`): their cells are not measured again, and the
+        reference peer's earlier rates serve the ratios of the cells still to measure.
     """
 
     scenes: Sequence[str]
@@ -127,6 +151,7 @@ class BenchConfig:
     validate: int = 200
     seed: int = 0
     warmup_triangles: int = 40_000
+    done: Mapping[CellKey, Record] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.scenes:
@@ -454,9 +479,9 @@ class _Progress:
         if self._progress is not None:
             self._progress.update(self._task, description=text)
 
-    def advance(self) -> None:
+    def advance(self, steps: int = 1) -> None:
         if self._progress is not None:
-            self._progress.advance(self._task)
+            self._progress.advance(self._task, steps)
 
 
 # -- the run -----------------------------------------------------------------------------------
@@ -604,6 +629,10 @@ class _Run:
                     self.scene(spec, usable)
         finally:
             numba.set_num_threads(initial_threads)
+            # The timed queries close over the peers: drop them, so the peers' native
+            # scenes (Embree, Open3D, Mitsuba) are freed here by reference counting, not
+            # later by the cyclic garbage collector in whatever the process runs next.
+            self.reference_queries.clear()
         return self.result
 
     def scene(self, spec: str, peers: list[peers_mod.Peer]) -> None:
@@ -626,11 +655,38 @@ class _Run:
             numba.set_num_threads(threads)
             reference_rates: dict[str, float] = {}
             for peer in peers:
+                if self.skip_done(label, peer.name, threads, raysets, reference_rates):
+                    self.ui.advance(len(raysets))
+                    continue
                 self.peer(peer, mesh, raysets, references, {**base, "threads": threads},
                           reference_rates)  # fmt: skip
             for builder in config.builder_keys():
+                systems = [f"{builder}+{t}" for t in config.traversal_keys(builder)]
+                if all(self.skip_done(label, s, threads, raysets, {}) for s in systems):
+                    self.ui.advance(len(systems) * len(raysets))
+                    continue
                 self.ours(builder, mesh, raysets, references, {**base, "threads": threads},
                           reference_rates)  # fmt: skip
+
+    def is_done(self, scene: str, system: str, threads: int, kind: str) -> bool:
+        """Whether an earlier run finished this cell (:attr:`BenchConfig.done`)."""
+        return (scene, system, threads, kind) in self.config.done
+
+    def skip_done(
+        self, scene: str, system: str, threads: int, raysets: Mapping[str, RaySet],
+        rates: dict[str, float],
+    ) -> bool:  # fmt: skip
+        """Return whether every ray set of a system is done; take the reference's rates.
+
+        The reference peer's earlier rates fill ``rates``, so the cells still to measure
+        get their ratios.
+        """
+        done = self.config.done
+        for kind in raysets:
+            earlier = done.get((scene, system, threads, kind)) or {}
+            if system == peers_mod.REFERENCE_PEER and earlier.get("mrays_median"):
+                rates[kind] = float(earlier["mrays_median"])
+        return all(self.is_done(scene, system, threads, kind) for kind in raysets)
 
     def _validation(self, ref: _Reference | None, mismatches: int | None) -> Record | None:
         if ref is None or mismatches is None:
@@ -667,6 +723,9 @@ class _Run:
         system = {"system": peer.name, "kind": "peer", "peer": peer.name, "builder": None,
                   "traversal": None, "peer_label": peer.label}  # fmt: skip
         for kind, rayset in raysets.items():
+            if self.is_done(base["scene"], peer.name, base["threads"], kind):
+                self.ui.advance()
+                continue
             self.ui.describe(f"{base['scene']}: {peer.name} {kind}")
             rays = peer.limit(rayset.rays)
             prepared = peer.prepare(rays)
@@ -740,6 +799,9 @@ class _Run:
                       "traversal": traversal, "peer": None, "build_ms": build_ms,
                       **structure}  # fmt: skip
             for kind, rayset in raysets.items():
+                if self.is_done(base["scene"], f"{builder}+{traversal}", base["threads"], kind):
+                    self.ui.advance()
+                    continue
                 self.ui.describe(f"{base['scene']}: {builder}+{traversal} {kind}")
                 self.measure_ours(accel, traversal, kind, rayset, references.get(kind),
                                   {**base, **system}, rates)  # fmt: skip
