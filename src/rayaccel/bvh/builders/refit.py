@@ -70,10 +70,21 @@ def top_frontier(root, left, right, target):
 
 
 def _push_py(stack, sp, value):
-    """Push ``value`` on a growable int32 stack; return the (possibly new) stack."""
+    """Push ``value`` on a growable int32 stack; return the (possibly new) stack.
+
+    The entries are copied by an explicit loop. Inlined twice into a ``prange`` body
+    (pushes at ``sp`` and ``sp + 1``: :func:`refit_collapse`, the emission of
+    :mod:`rayaccel.bvh.layouts.linked_tree`), a slice copy ``grown[:sp] = stack[:sp]``
+    was lowered wrongly by numba 0.68's parfor passes when the push at ``sp`` grew
+    the stack: nothing was copied, or a size check failed (``SystemError ...
+    refit_collapse returned a result with an exception set``), so subtrees deeper
+    than the initial stack were lost from the refit (the insertion build of a
+    20k-triangle fan crashed).
+    """
     if sp == stack.shape[0]:
         grown = np.empty(2 * stack.shape[0], dtype=np.int32)
-        grown[:sp] = stack[:sp]
+        for i in range(sp):
+            grown[i] = stack[i]
         stack = grown
     stack[sp] = value
     return stack
