@@ -187,7 +187,7 @@ def test_concurrent_python_threads_in_subprocess(tmp_path, layer):
     script = tmp_path / "query_from_threads.py"
     script.write_text(CONCURRENT_SCRIPT)
     proc = subprocess.run([sys.executable, str(script)], env=env, capture_output=True,
-                          text=True, timeout=600)
+                          text=True, timeout=1500)
     output = proc.stdout + proc.stderr
     if layer == "omp" and "No threading layer could be loaded" in output:
         pytest.skip("the OpenMP threading layer is not available")
