@@ -139,7 +139,11 @@ def test_local_sweep_records_every_cell(finished):
     manifest = json.loads((results.with_suffix(".rays") / "cornell-box" / "rays.json").read_text())
     assert manifest["spp"] == 1
     assert manifest["camera"]["width"] == 16
-    assert summary.overhead < 0.5  # measured, not asserted tightly (shared machines)
+    # The accounting holds (the cells' and ray sets' time lies within the wall time); how
+    # large the overhead is is measured by benchmarks/bench_sweep.py, not asserted here: a
+    # loaded CI machine pushed it past the 0.5 this test once asserted.
+    assert summary.cell_seconds + summary.rays_seconds <= summary.wall_seconds * 1.01
+    assert summary.overhead >= -0.01
 
 
 def test_resume_skips_finished_cells_and_cuts_a_torn_line(finished, tmp_path):
