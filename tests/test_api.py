@@ -135,6 +135,21 @@ def test_per_ray_intervals(teapot, rays):
     assert (again.t[~even & hits.hit] > hits.t[~even & hits.hit]).all()
 
 
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_ray_arrays_are_writable_copies_of_read_only_input(precision):
+    """A single broadcast row or a read-only array is copied: read-only is part of a
+    kernel's argument types, and both kinds would compile every traversal twice."""
+    one = RayBatch([[0.0, 0, -1]], np.array([0.0, 0, 1]), precision=precision)
+    frozen = np.zeros((4, 3), dtype=precision)
+    frozen.flags.writeable = False
+    tmax = np.full(4, 5.0, dtype=precision)
+    tmax.flags.writeable = False
+    many = RayBatch(frozen, np.ones((4, 3)), 0.0, tmax, precision=precision)
+    for batch in (one, many):
+        for array in (batch.origin, batch.direction, batch.tmin, batch.tmax):
+            assert array.flags.writeable and array.flags.c_contiguous
+
+
 def test_info(teapot):
     info = teapot.info()
     for key in ("builder", "structure", "build_ms", "n_prims", "n_nodes", "n_leaves",

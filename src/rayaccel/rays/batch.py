@@ -68,8 +68,17 @@ def _as_vectors(
     if n is not None and array.shape[0] != n:
         raise InvalidInputError(f"{name}: expected {n} rows to match origins, got {array.shape[0]}")
     with np.errstate(over="ignore"):
-        coerced: FloatArray = np.ascontiguousarray(array, dtype=dtype)
+        coerced: FloatArray = _writable(np.ascontiguousarray(array, dtype=dtype))
     return array, coerced
+
+
+def _writable(array: FloatArray) -> FloatArray:
+    """``array``, copied if read-only (a broadcast single row, a read-only memmap).
+
+    Kernels compile one specialisation per argument type and read-only is part of the
+    type: passing both kinds would compile every traversal twice.
+    """
+    return array if array.flags.writeable else array.copy()
 
 
 def _as_interval(name: str, value: object, n: int, dtype: type = REAL) -> FloatArray:
@@ -95,7 +104,7 @@ def _as_interval(name: str, value: object, n: int, dtype: type = REAL) -> FloatA
     # Beyond float32's range a bound rounds to +-inf: no hit of a ray in range lies that
     # far (docs/reliability.md, "Numbers"), so the interval keeps the same hits.
     with np.errstate(over="ignore"):
-        return np.ascontiguousarray(array, dtype=dtype)
+        return _writable(np.ascontiguousarray(array, dtype=dtype))
 
 
 @dataclass(frozen=True, slots=True, eq=False, init=False)

@@ -562,7 +562,7 @@ def _build_kernel(
             out_split = _grow_f(out_split, n_nodes)
             out_bits = _grow_f(out_bits, n_nodes)
         out_split[node] = p
-        out_bits[node] = (child << 2) | k
+        out_bits[node] = (child << 2) | np.int32(k)  # k is int8: widened as numba does
         # Clip every straddling triangle to both children (perfect splits).
         # both_bounds[j] holds the left then the right part's bounds, in two passes.
         n_new_max = 6 * n_both
@@ -576,6 +576,13 @@ def _build_kernel(
             e_typ = _grow_f(e_typ, need)
             e_axis = _grow_f(e_axis, need)
             e_prim = _grow_f(e_prim, need)
+        # A node may hold more events than the root: a triangle planar in an axis gets a
+        # start and an end there once clipped (its bounds are padded outward).
+        if end - begin > k_pos.shape[0]:
+            k_pos = _grow_f(k_pos, end - begin)
+            k_typ = _grow_f(k_typ, end - begin)
+            k_axis = _grow_f(k_axis, end - begin)
+            k_prim = _grow_f(k_prim, end - begin)
         if n_new_max > n_pos.shape[0]:
             n_pos = _grow_f(n_pos, n_new_max)
             n_typ = _grow_f(n_typ, n_new_max)

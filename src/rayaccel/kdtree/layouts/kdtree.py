@@ -192,7 +192,8 @@ class KdTree:
         triangle (its box, without perfect splits or for a sliver, see :data:`SLIVER`)
         overlaps its leaf's closed cell grown by 1e-6 of the scene's size (clipped
         bounds are rounded outward), and every triangle is listed in each leaf whose
-        open cell it overlaps (the cell shrunk by 1e-6 of the scene's size).
+        open cell it overlaps (the cell shrunk by 1e-6 of the scene's size); the size
+        is at least the largest coordinate's magnitude, where rounding is relative to.
         """
         n = self.n_nodes
         if n == 0:
@@ -244,7 +245,10 @@ class KdTree:
         node_of_leaf = np.empty(self.n_leaves, dtype=INDEX)
         leaf_nodes = np.flatnonzero((self.node_bits & 3) == LEAF_AXIS)
         node_of_leaf[self.node_bits[leaf_nodes] >> 2] = leaf_nodes
-        grow = REAL(1e-6) * max(float((self.hi - self.lo).max()), 1e-30)
+        # A millionth of the scene's size, or of its coordinates where they are larger (a
+        # small scene far from the origin): clipped bounds are padded relative to both.
+        magnitude = float(max(np.abs(self.lo).max(), np.abs(self.hi).max()))
+        grow = REAL(1e-6) * max(float((self.hi - self.lo).max()), magnitude, 1e-30)
         bad = _check_listed_overlap(
             tri, self.prim_index, leaf_of_ref.astype(INDEX), node_of_leaf, lo, hi,
             self.perfect_splits, grow,
@@ -419,7 +423,7 @@ def _check_complete(tri, kd, sorted_pairs, n_prims, max_depth):
     """Return ``(prim, leaf)`` of a triangle overlapping an open leaf cell it is not listed in.
 
     Each triangle descends the tree by its bounding box; at each leaf whose cell,
-    shrunk by one ulp on every side, it overlaps exactly, the pair (leaf, prim) must
+    shrunk on every side (see below), it overlaps exactly, the pair (leaf, prim) must
     be in ``sorted_pairs``. Returns ``(-1, -1)`` when every triangle is complete.
     """
     stack = np.empty(max_depth + 2, dtype=np.int32)
@@ -431,7 +435,12 @@ def _check_complete(tri, kd, sorted_pairs, n_prims, max_depth):
     t_hi = np.empty(3, dtype=np.float32)
     # Cells are shrunk by a millionth of the scene's size: triangles touching a cell's
     # boundary (listed on one side only) and float64 rounding in the overlap test stay out.
+    # A scene small against its coordinates (1e-5 wide at 1.0) shrinks by a millionth of
+    # those instead: its size's millionth is below their float32 spacing, so the cells
+    # stayed closed and a point on a split plane was missed on the side it is not listed.
     size = max(kd.hi[0] - kd.lo[0], kd.hi[1] - kd.lo[1], kd.hi[2] - kd.lo[2])
+    for a in range(3):
+        size = max(size, abs(kd.lo[a]), abs(kd.hi[a]))
     shrink = np.float32(1e-6) * max(size, np.float32(1e-30))
     for p in range(tri.shape[0]):
         for a in range(3):
