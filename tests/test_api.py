@@ -147,7 +147,8 @@ def test_ray_arrays_are_writable_copies_of_read_only_input(precision):
     many = RayBatch(frozen, np.ones((4, 3)), 0.0, tmax, precision=precision)
     for batch in (one, many):
         for array in (batch.origin, batch.direction, batch.tmin, batch.tmax):
-            assert array.flags.writeable and array.flags.c_contiguous
+            assert array.flags.writeable
+            assert array.flags.c_contiguous
 
 
 def test_info(teapot):
