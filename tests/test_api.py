@@ -166,17 +166,47 @@ def test_derived_layout_is_cached_and_counted():
     accel = rayaccel.build(rayaccel.scenes.get("teapot"), "bvh2.sweep_sah")
     before = accel.info()["bytes"]
     assert before == accel.structure.nbytes()
+    assert accel.info()["layouts"] == {}
     assert accel.derived("bvh2.packed") is None
-    accel.intersect([[0, 0, 10]], (0, 0, -1))
+    accel.intersect([[0, 0, 10]], (0, 0, -1), traversal="bvh2.stack")
     # bvh2.stack traces the pairs rows, derived from the packed layout (both kept).
     packed = accel.derived("bvh2.packed")
     pairs = accel.derived("bvh2.pairs")
     assert packed is not None
     assert pairs is not None
     assert accel.info()["bytes"] == before + packed.nbytes() + pairs.nbytes()
-    accel.intersect([[0, 0, 10]], (0, 0, -1))
+    accel.intersect([[0, 0, 10]], (0, 0, -1), traversal="bvh2.stack")
     assert accel.derived("bvh2.packed") is packed
     assert accel.derived("bvh2.pairs") is pairs
+    # A query naming no traversal uses the fastest, bvh2.wide: its 8-wide layout is built
+    # once, and info() reports its bytes and build time.
+    accel.intersect([[0, 0, 10]], (0, 0, -1))
+    wide = accel.derived("bvh2.wide8")
+    assert wide is not None
+    layouts = accel.info()["layouts"]
+    assert set(layouts) == {"bvh2.packed", "bvh2.pairs", "bvh2.wide8"}
+    assert layouts["bvh2.wide8"]["bytes"] == wide.nbytes()
+    assert all(entry["build_ms"] > 0 for entry in layouts.values())
+    assert accel.info()["bytes"] == before + sum(entry["bytes"] for entry in layouts.values())
+    accel.occluded([[0, 0, 10]], (0, 0, -1))
+    assert accel.derived("bvh2.wide8") is wide
+
+
+def test_queries_naming_no_traversal_use_the_fastest(teapot, rays):
+    """intersect/occluded/trace without a traversal run registry.query_traversal (bvh2.wide
+    for BVHs): the same hits as the reference traversal, bvh2.stack."""
+    assert registry.query_traversal("bvh2") == "bvh2.wide"
+    assert registry.query_traversal("kdtree") == registry.default_traversal("kdtree")
+    assert registry.query_traversal("grid") == registry.default_traversal("grid")
+    fastest = teapot.trace(rays, stats=True)
+    reference_hits = teapot.trace(rays, traversal="bvh2.stack")
+    wide = teapot.trace(rays, traversal="bvh2.wide", stats=True)
+    assert np.array_equal(fastest.prim, reference_hits.prim)
+    assert np.array_equal(fastest.t, reference_hits.t)
+    # The counters are the wide walk's (8-wide nodes), not the binary one's.
+    assert fastest.stats.keys() == wide.stats.keys()
+    for name, counts in wide.stats.items():
+        assert np.array_equal(fastest.stats[name], counts), name
 
 
 def test_builder_options_round_trip():
@@ -229,6 +259,7 @@ def test_registry_enumeration():
 
 def test_defaults_come_from_the_registry():
     assert registry.default_traversal("bvh2") == "bvh2.stack"
+    assert registry.query_traversal("bvh2") == "bvh2.wide"
     assert registry.default_builder("bvh2") == "bvh2.binned_sah"
     with pytest.raises(InvalidInputError, match="no default traversal"):
         registry.default_traversal("no-such-structure")

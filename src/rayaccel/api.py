@@ -35,6 +35,7 @@ from rayaccel.errors import AccelFileError, InvalidInputError, UnknownVariantErr
 from rayaccel.queries import QUERY_KINDS
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
+from rayaccel.trace.run import LAYOUT_MS
 from rayaccel.trace.structure import QualityMetrics, Structure
 
 if TYPE_CHECKING:
@@ -123,8 +124,10 @@ class Accel:
         query : {"closest", "any"}
             ``"any"`` stops at the first hit found (``prim`` is some hit, not the closest).
         traversal : str, optional
-            Traversal registry key; default: the structure's default traversal
-            (:func:`rayaccel.registry.default_traversal`).
+            Traversal registry key; default: the structure's fastest CPU traversal
+            (:func:`rayaccel.registry.query_traversal`, ``bvh2.wide`` for BVHs), and
+            on ``device="cuda"`` its default traversal
+            (:func:`rayaccel.registry.default_traversal`, ``bvh2.stack``).
         stats : bool
             Fill ``hits.stats`` with per-ray counters.
         device : {"cpu", "cuda"}
@@ -143,7 +146,12 @@ class Accel:
             raise InvalidInputError(f"traversal: expected a registry key, got {traversal!r}")
         if not isinstance(rays, RayBatch) and not (device == "cuda" and _is_device_rays(rays)):
             raise InvalidInputError(f"rays: expected a RayBatch, got {type(rays).__name__}")
-        key = traversal or registry.default_traversal(self.structure_name)
+        if traversal is not None:
+            key = traversal
+        elif device == "cuda":
+            key = registry.default_traversal(self.structure_name)
+        else:
+            key = registry.query_traversal(self.structure_name)
         variant = registry.get(key, "traversal")
         if variant.structure != self.structure_name:
             raise InvalidInputError(
@@ -472,8 +480,10 @@ class Accel:
         structure's own figures (:meth:`rayaccel.trace.structure.Structure.info`; for
         a BVH ``n_nodes``, ``n_leaves``, ``n_refs``, ``depth``, ``sah``,
         ``mean_leaf_size``), ``refs_per_prim`` when it counts references, ``bytes``
-        (canonical plus every derived layout built so far), ``options``; ``epo`` and
-        ``lcv`` when requested.
+        (canonical plus every derived layout built so far), ``layouts`` (each derived
+        layout built so far, e.g. the 8-wide BVH of the default query traversal: its
+        ``bytes`` and ``build_ms``, which includes the layouts it derives from when they
+        were built for it), ``options``; ``epo`` and ``lcv`` when requested.
 
         Parameters
         ----------
@@ -524,6 +534,12 @@ class Accel:
             )
             info.update(quality)
         info["bytes"] = int(s.nbytes()) + derived_bytes
+        layout_ms = self._cache.get(LAYOUT_MS, {})
+        info["layouts"] = {
+            name: {"bytes": int(v.nbytes()), "build_ms": round(layout_ms.get(name, 0.0), 3)}
+            for name, v in self._cache.items()
+            if hasattr(v, "nbytes")
+        }
         if self.last_refit is not None:
             info["refit"] = dict(self.last_refit)
         info["options"] = {
@@ -587,7 +603,7 @@ class Accel:
             structure_name=self.structure_name,
         )
         with self._lock:
-            outcome.report["dropped"] = sorted(self._cache)
+            outcome.report["dropped"] = sorted(k for k in self._cache if k != LAYOUT_MS)
             self.mesh = outcome.mesh
             self.structure = outcome.structure
             self.build_sah = outcome.build_sah

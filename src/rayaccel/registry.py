@@ -157,8 +157,32 @@ def default_builder(structure: str) -> str:
 
 
 def default_traversal(structure: str) -> str:
-    """Return the traversal registered with ``default=True`` for ``structure``."""
+    """Return the traversal registered with ``default=True`` for ``structure``.
+
+    It is the structure's reference traversal: the conformance tests pair every builder
+    with it and the study counts its steps. Queries that name no traversal use
+    :func:`query_traversal`.
+    """
     return _default("traversal", structure)
+
+
+#: The traversal a query uses when it names none, where it is not the structure's
+#: default (reference) one: the fastest correct CPU traversal, measured on the preset
+#: and other cameras of the benchmark scenes (docs/performance.md, "The default
+#: query traversal").
+FASTEST_TRAVERSAL = {"bvh2": "bvh2.wide"}
+
+
+def query_traversal(structure: str) -> str:
+    """Return the traversal ``Accel.trace``, ``intersect`` and ``occluded`` use by default.
+
+    The fastest correct CPU traversal of ``structure`` (:data:`FASTEST_TRAVERSAL`), else
+    its default traversal.
+    """
+    fastest = FASTEST_TRAVERSAL.get(structure)
+    if fastest is not None and get(fastest, "traversal").structure == structure:
+        return fastest
+    return default_traversal(structure)
 
 
 def pausable(structure: str) -> tuple[str, Callable[..., Any]]:

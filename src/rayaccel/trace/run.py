@@ -10,6 +10,7 @@ layer is not thread-safe (:func:`rayaccel.config.parallel_section`).
 from __future__ import annotations
 
 import functools
+import time
 from collections.abc import Callable
 from contextvars import ContextVar
 from typing import Any, TypeVar
@@ -47,11 +48,17 @@ def memoised_layout(
     """
     if cache is not None and name in cache:
         return cache[name]  # type: ignore[no-any-return]
+    start = time.perf_counter()
     with parallel_section():
         layout = make()
     if cache is not None:
         cache[name] = layout
+        cache.setdefault(LAYOUT_MS, {})[name] = (time.perf_counter() - start) * 1e3
     return layout
+
+
+#: The cache entry holding each memoised layout's build time in ms (``Accel.info``).
+LAYOUT_MS = "layout_ms"
 
 
 def body_kernels(make_scratch: Any, trace_rays: Any) -> Callable[[int, bool, bool], Any]:
