@@ -685,7 +685,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", parents=[common], help="time structures and peers on "
                        "primary, diffuse and shadow rays")  # fmt: skip
-    p.add_argument("scenes", nargs="+", metavar="SCENE", help=scene_help)
+    p.add_argument("scenes", nargs="+", metavar="SCENE",
+                   help=scene_help + ", optionally with another view of its camera: "
+                   "living_room@yaw120 (turned in place), teapot@orbit90 (around the target)")
     p.add_argument("--accel", nargs="+", metavar="KEY",
                    help=f"{accel_help} or 'all' (default)")  # fmt: skip
     p.add_argument(

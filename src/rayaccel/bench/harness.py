@@ -60,6 +60,7 @@ from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.brute_force import brute_force_trace
 from rayaccel.queries import QUERY_ANY, QUERY_CLOSEST
 from rayaccel.rays.batch import RayBatch
+from rayaccel.rays.views import VIEW_SEPARATOR, split_view
 from rayaccel.scene import catalog, procedural
 from rayaccel.scene.io import scene_stem
 from rayaccel.scene.mesh import TriangleMesh
@@ -369,8 +370,14 @@ def sample_index(n: int, k: int, seed: int) -> np.ndarray:
 
 
 def scene_label(spec: str) -> str:
-    """Return the name a scene is reported under (a file path gives its stem)."""
-    return scene_stem(spec) if os.sep in spec or Path(spec).suffix else spec
+    """Return the name a scene is reported under (a file path gives its stem).
+
+    A view after the scene (``living_room@yaw120``, :mod:`rayaccel.rays.views`) stays
+    in the label: each view is a scene of its own in the tables.
+    """
+    scene, view = split_view(spec)
+    stem = scene_stem(scene) if os.sep in scene or Path(scene).suffix else scene
+    return stem if view is None else f"{stem}{VIEW_SEPARATOR}{view}"
 
 
 @dataclass
@@ -638,13 +645,15 @@ class _Run:
     def scene(self, spec: str, peers: list[peers_mod.Peer]) -> None:
         config = self.config
         label = scene_label(spec)
+        scene_spec, view = split_view(spec)
         self.ui.describe(f"{label}: loading")
-        mesh = catalog.get(spec)
+        mesh = catalog.get(scene_spec)
         self.ui.describe(f"{label}: generating rays")
         kinds = parse_kinds(list(config.ray_kinds))
         raysets = standard_raysets(
-            mesh, spec, kinds=kinds, width=config.width, height=config.height, seed=config.seed
-        )
+            mesh, scene_spec, kinds=kinds, width=config.width, height=config.height,
+            seed=config.seed, view=view,
+        )  # fmt: skip
         self.ui.describe(f"{label}: oracle")
         references = {
             kind: reference_hits(mesh, rs, config.validate, config.seed, self.result.notes)

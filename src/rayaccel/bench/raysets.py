@@ -35,6 +35,7 @@ from rayaccel.errors import InvalidInputError
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.rays.bounce import diffuse_rays, shadow_rays
 from rayaccel.rays.camera import PinholeCamera, frame_bounds, from_preset
+from rayaccel.rays.views import turned
 from rayaccel.scene import catalog
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -92,7 +93,7 @@ def parse_kinds(spec: str | Sequence[str] | None) -> list[str]:
 
 
 def scene_camera(
-    mesh: TriangleMesh, name: str | None, *, width: int, height: int
+    mesh: TriangleMesh, name: str | None, *, width: int, height: int, view: str | None = None
 ) -> tuple[PinholeCamera, Mapping[str, Any] | None]:
     """Return the benchmark camera of a scene and its catalog preset (None if framed).
 
@@ -104,13 +105,17 @@ def scene_camera(
         Catalog name (or path) used to look up a preset.
     width, height : int
         Resolution.
+    view : str, optional
+        A named view of that camera (:mod:`rayaccel.rays.views`: ``yaw120``,
+        ``orbit90``); default the camera itself.
     """
     preset = catalog.camera_preset(name) if name else None
     if preset is not None:
         camera = from_preset({k: preset[k] for k in _CAMERA_KEYS if k in preset}, width, height)
-        return camera, preset
-    lo, hi = mesh.bounds()
-    return frame_bounds(lo, hi, width=width, height=height), None
+    else:
+        lo, hi = mesh.bounds()
+        camera = frame_bounds(lo, hi, width=width, height=height)
+    return (camera if view is None else turned(camera, view)), preset
 
 
 def scene_light(
@@ -141,6 +146,7 @@ def standard_raysets(
     height: int = 512,
     seed: int = 0,
     accel: api.Accel | None = None,
+    view: str | None = None,
 ) -> dict[str, RaySet]:
     """Generate the standard ray sets of a scene.
 
@@ -159,6 +165,9 @@ def standard_raysets(
     accel : Accel, optional
         Structure used to find the primary hits; default a fresh
         ``bvh2.binned_sah`` build.
+    view : str, optional
+        Another view of the scene's camera (:mod:`rayaccel.rays.views`); the point
+        light stays where the scene's camera puts it.
 
     Returns
     -------
@@ -167,7 +176,8 @@ def standard_raysets(
     """
     kinds = parse_kinds(list(kinds))
     camera, preset = scene_camera(mesh, name, width=width, height=height)
-    primary = camera.rays()
+    viewed = camera if view is None else turned(camera, view)
+    primary = viewed.rays()
     sets: dict[str, RaySet] = {}
     if "primary" in kinds:
         sets["primary"] = RaySet("primary", RAY_KINDS["primary"], primary)
