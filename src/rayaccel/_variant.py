@@ -11,6 +11,7 @@ import dataclasses
 import difflib
 import functools
 import inspect
+import re
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -150,6 +151,99 @@ def coerce_option(key: str, name: str, value: Any, kind: Any) -> Any:
     return value
 
 
+#: The numpydoc sections every traversal shares (they all take the same arguments), which
+#: :func:`register` adds to its docstring: ``{name}`` and ``{kind}`` are the first
+#: parameter's name and type, ``{options}`` the options class.
+TRAVERSAL_SECTIONS = """\
+Parameters
+----------
+{name} : {kind}
+    The structure to trace; the layouts derived from it are memoised in ``cache``.
+mesh : TriangleMesh
+    The mesh ``{name}`` was built over.
+rays : RayBatch
+    The rays to trace.
+query : {{"closest", "any"}}
+    ``"any"`` stops each ray at the first hit found.
+stats : bool
+    Also return per-ray counters in ``hits.stats``.
+options : {options}, optional
+    The traversal's options (their defaults when None).
+cache : dict, optional
+    Memo for the derived layouts (an ``Accel`` passes its own).
+
+Returns
+-------
+HitBatch
+    For ``query="any"``, ``prim >= 0`` marks occluded rays (some hit, not the closest).
+"""
+
+#: The numpydoc sections every builder shares, added by :func:`register` like
+#: :data:`TRAVERSAL_SECTIONS` (``{refs}``: the ``refs`` entry, for builders that take it).
+BUILDER_SECTIONS = """\
+Parameters
+----------
+mesh : TriangleMesh
+    The mesh to build over.
+options : {options}, optional
+    The builder's options (their defaults when None).
+{refs}
+Returns
+-------
+{kind}
+    The canonical structure.
+"""
+
+_REFS_ENTRY = """\
+refs : BuildRefs, optional
+    References to build over (e.g. pre-split triangle parts); default one per triangle.
+"""
+
+#: A numpydoc section header: a title line underlined with dashes.
+_SECTION = re.compile(r"^\w[\w ]*\n-{3,}$", re.MULTILINE)
+
+
+def _type_name(annotation: Any) -> str:
+    """Return a numpydoc type for an annotation (``"A | B | None"`` -> ``"A or B"``)."""
+    text = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
+    names = [name.strip() for name in str(text).split("|") if name.strip() != "None"]
+    return " or ".join(filter(None, (", ".join(names[:-1]), names[-1])))
+
+
+def shared_sections(func: Callable[..., Any], role: Role) -> str:
+    """Return the numpydoc sections a ``role`` variant shares with its kind ("" for steps)."""
+    signature = inspect.signature(func)
+    parameters = list(signature.parameters.values())
+    if role == "step" or "options" not in signature.parameters:
+        return ""
+    options = _type_name(signature.parameters["options"].annotation)
+    if role == "traversal":
+        first = parameters[0]
+        return TRAVERSAL_SECTIONS.format(
+            name=first.name, kind=_type_name(first.annotation), options=options
+        )
+    refs = _REFS_ENTRY if "refs" in signature.parameters else ""
+    return BUILDER_SECTIONS.format(
+        options=options, refs=refs, kind=_type_name(signature.return_annotation)
+    )
+
+
+def with_shared_sections(func: Callable[..., Any], role: Role) -> None:
+    """Add the shared sections to ``func``'s docstring, before its own sections (if any).
+
+    A docstring that has its own ``Parameters`` section is left as it is.
+    """
+    doc = inspect.cleandoc(func.__doc__ or "")
+    shared = shared_sections(func, role)
+    match = _SECTION.search(doc)
+    if not doc or not shared or re.search(r"^Parameters\n-{3,}$", doc, re.MULTILINE):
+        return
+    at = match.start() if match else len(doc)
+    head = doc[:at].rstrip()
+    tail = doc[at:].strip()
+    func.__doc__ = "\n\n".join(part for part in (head, shared.strip(), tail) if part) + "\n"
+
+
 REGISTRY: dict[str, Variant] = {}
 #: Traversals that can pause and resume, by key: ``start(structure, mesh, rays, cache=None)``
 #: returns a state whose ``next_hits()`` resumes every ray (see :func:`register_pausable`).
@@ -172,7 +266,9 @@ def register(
     ``stage`` applies to steps only: ``"after"`` (default) for a post-process of the
     built structure, ``"before"`` for a step that makes the references the builder
     builds over (see :class:`Variant`). ``default`` marks the builder or traversal of
-    its structure used when none is named.
+    its structure used when none is named. Builders and traversals, which share their
+    arguments, have the shared numpydoc sections added to their docstrings
+    (:func:`with_shared_sections`), so each docstring says only what is its own.
     """
     structure = key.replace(STEP_SEPARATOR, ".").split(".", 1)[0]
     if (role == "step") != (STEP_SEPARATOR in key):
@@ -188,6 +284,7 @@ def register(
         REGISTRY[key] = Variant(
             key, role, structure, func, options, summary, reference, backend, stage, default
         )
+        with_shared_sections(func, role)
         return func
 
     return decorate

@@ -17,7 +17,7 @@ Files the loader reads as they are (``.ply.gz``) have ``member=None``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 #: Archive kinds :func:`~rayaccel.scene.fetch.fetch` unpacks (``None``: a plain file).
@@ -87,6 +87,45 @@ class RemoteScene:
     notes: str = ""
 
 
+def _stanford(
+    name: str, title: str, path: str, sha256: str, size: int | None, *,
+    archive: ArchiveKind | None = None, member: str | None = None,
+    credit: str = _STANFORD_CREDIT, up: str = "+y",
+    source_of_hash: str = "recorded with the same size by two public projects", notes: str,
+) -> RemoteScene:  # fmt: skip
+    """Return a scan of the Stanford 3D Scanning Repository (``path`` below its site)."""
+    return RemoteScene(
+        name, title, f"{_STANFORD}/{path}", sha256, size, archive, member, _STANFORD_TERMS,
+        credit, up, source_of_hash, notes,
+    )  # fmt: skip
+
+
+def _bitterli(name: str, title: str, author: str, notes: str = "") -> RemoteScene:
+    """Return a pbrt-v3 scene of Bitterli's Rendering Resources: PLY parts in a zip, no hash."""
+    return RemoteScene(
+        name, title, f"{_BITTERLI}/{name}.zip", None, None, "zip", "*models/*.ply", "CC BY 3.0",
+        f"{author}; pbrt version by Benedikt Bitterli", "+y", "", _BITTERLI_NOTE + notes,
+    )  # fmt: skip
+
+
+_SAN_MIGUEL = RemoteScene(
+    name="san-miguel",
+    title="San Miguel 2.1",
+    url=f"{_MCGUIRE}/research/model/San_Miguel/San_Miguel.zip",
+    sha256="85874077735808150e679b3c71d70a37a270cb8833f4911325aa1099da3f7d4a",
+    size=535_519_642,
+    archive="zip",
+    member="san-miguel.obj",
+    licence="research and educational use with attribution (the archive's license.txt)",
+    credit=(
+        "Guillermo M. Leal Llaguno; 2017 update by Morgan McGuire, Guedis Cardenas, "
+        "Michael Mara and Nicholas Hull"
+    ),
+    up="+y",
+    source_of_hash="recorded with the same size by two public projects",
+    notes="About 10M triangles; the whole archive (textures included) is unpacked.",
+)
+
 REMOTE_SCENES: dict[str, RemoteScene] = {
     scene.name: scene
     for scene in (
@@ -117,189 +156,74 @@ REMOTE_SCENES: dict[str, RemoteScene] = {
             up="+y",
             notes="The bundled sponza_dabrovic.ply is the same model from another source.",
         ),
-        RemoteScene(
-            name="san-miguel",
-            title="San Miguel 2.1",
-            url=f"{_MCGUIRE}/research/model/San_Miguel/San_Miguel.zip",
-            sha256="85874077735808150e679b3c71d70a37a270cb8833f4911325aa1099da3f7d4a",
-            size=535_519_642,
-            archive="zip",
-            member="san-miguel.obj",
-            licence="research and educational use with attribution (the archive's license.txt)",
-            credit=(
-                "Guillermo M. Leal Llaguno; 2017 update by Morgan McGuire, Guedis Cardenas, "
-                "Michael Mara and Nicholas Hull"
-            ),
-            up="+y",
-            source_of_hash="recorded with the same size by two public projects",
-            notes="About 10M triangles; the whole archive (textures included) is unpacked.",
-        ),
-        RemoteScene(
+        _SAN_MIGUEL,
+        replace(
+            _SAN_MIGUEL,
             name="san-miguel-low-poly",
             title="San Miguel 2.1, low-poly version",
-            url=f"{_MCGUIRE}/research/model/San_Miguel/San_Miguel.zip",
-            sha256="85874077735808150e679b3c71d70a37a270cb8833f4911325aa1099da3f7d4a",
-            size=535_519_642,
-            archive="zip",
             member="san-miguel-low-poly.obj",
-            licence="research and educational use with attribution (the archive's license.txt)",
-            credit=(
-                "Guillermo M. Leal Llaguno; 2017 update by Morgan McGuire, Guedis Cardenas, "
-                "Michael Mara and Nicholas Hull"
-            ),
-            up="+y",
-            source_of_hash="recorded with the same size by two public projects",
             notes="Shares the download of san-miguel.",
         ),
-        RemoteScene(
-            name="stanford-bunny",
-            title="Stanford Bunny (bun_zipper reconstruction)",
-            url=f"{_STANFORD}/pub/3Dscanrep/bunny.tar.gz",
-            sha256="a5720bd96d158df403d153381b8411a727a1d73cff2f33dc9b212d6f75455b84",
-            size=4_894_286,
-            archive="tar",
-            member="bunny/reconstruction/bun_zipper.ply",
-            licence=_STANFORD_TERMS,
-            credit=_STANFORD_CREDIT,
-            up="+y",
+        _stanford(
+            "stanford-bunny", "Stanford Bunny (bun_zipper reconstruction)",
+            "pub/3Dscanrep/bunny.tar.gz",
+            "a5720bd96d158df403d153381b8411a727a1d73cff2f33dc9b212d6f75455b84", 4_894_286,
+            archive="tar", member="bunny/reconstruction/bun_zipper.ply",
             source_of_hash="recorded with the same size by several public projects",
             notes="69,451 triangles (Turk and Levoy 1994).",
         ),
-        RemoteScene(
-            name="stanford-dragon",
-            title="Stanford Dragon (vrip reconstruction)",
-            url=f"{_STANFORD}/pub/3Dscanrep/dragon/dragon_recon.tar.gz",
-            sha256="74ac1d90989c9b1732edee82d57e9ce71452144cf4355f108d8c9c616d28d02f",
-            size=11_197_764,
-            archive="tar",
-            member="dragon_recon/dragon_vrip.ply",
-            licence=_STANFORD_TERMS,
-            credit=_STANFORD_CREDIT,
-            up="+y",
+        _stanford(
+            "stanford-dragon", "Stanford Dragon (vrip reconstruction)",
+            "pub/3Dscanrep/dragon/dragon_recon.tar.gz",
+            "74ac1d90989c9b1732edee82d57e9ce71452144cf4355f108d8c9c616d28d02f", 11_197_764,
+            archive="tar", member="dragon_recon/dragon_vrip.ply",
             source_of_hash="recorded with the same size by several public projects",
             notes="871,414 triangles.",
         ),
-        RemoteScene(
-            name="happy-buddha",
-            title="Happy Buddha (vrip reconstruction)",
-            url=f"{_STANFORD}/pub/3Dscanrep/happy/happy_recon.tar.gz",
-            sha256="409cd294efbfd8244e15a382b95a9423f153b7776e736c9b09f19ec9d3c10ed0",
-            size=14_456_495,
-            archive="tar",
-            member="happy_recon/happy_vrip.ply",
-            licence=_STANFORD_TERMS,
-            credit=_STANFORD_CREDIT,
-            up="+y",
-            source_of_hash="recorded with the same size by two public projects",
-            notes="1,087,716 triangles.",
+        _stanford(
+            "happy-buddha", "Happy Buddha (vrip reconstruction)",
+            "pub/3Dscanrep/happy/happy_recon.tar.gz",
+            "409cd294efbfd8244e15a382b95a9423f153b7776e736c9b09f19ec9d3c10ed0", 14_456_495,
+            archive="tar", member="happy_recon/happy_vrip.ply", notes="1,087,716 triangles.",
         ),
-        RemoteScene(
-            name="armadillo",
-            title="Stanford Armadillo",
-            url=f"{_STANFORD}/pub/3Dscanrep/armadillo/Armadillo.ply.gz",
-            sha256="8b9b56cc36e66d54429b1e1e75bd89e833645bfe0dc7c1afd1205877a7356a3f",
-            size=3_874_291,
-            archive=None,
-            member=None,
-            licence=_STANFORD_TERMS,
-            credit=_STANFORD_CREDIT,
-            up="+y",
-            source_of_hash="recorded with the same size by two public projects",
+        _stanford(
+            "armadillo", "Stanford Armadillo", "pub/3Dscanrep/armadillo/Armadillo.ply.gz",
+            "8b9b56cc36e66d54429b1e1e75bd89e833645bfe0dc7c1afd1205877a7356a3f", 3_874_291,
             notes="345,944 triangles; read gzipped as it is.",
         ),
-        RemoteScene(
-            name="lucy",
-            title="Lucy",
-            url=f"{_STANFORD}/data/3Dscanrep/lucy.tar.gz",
-            sha256="c4beb1f7bfa965643bbbf889bd1849a4b4b955e95c731941be61e6edac65616a",
-            size=None,
-            archive="tar",
-            member="lucy.ply",
-            licence=_STANFORD_TERMS,
-            credit=_STANFORD_CREDIT,
+        _stanford(
+            "lucy", "Lucy", "data/3Dscanrep/lucy.tar.gz",
+            "c4beb1f7bfa965643bbbf889bd1849a4b4b955e95c731941be61e6edac65616a", None,
+            archive="tar", member="lucy.ply", up="?",
             source_of_hash="recorded by two public projects (download about 307 MB)",
             notes="About 28M triangles.",
         ),
-        RemoteScene(
-            name="xyzrgb-dragon",
-            title="Asian Dragon (XYZ RGB)",
-            url=f"{_STANFORD}/data/3Dscanrep/xyzrgb/xyzrgb_dragon.ply.gz",
-            sha256="8aa449f1966cbb50e5896ecc32cf57ab5f0cdfd3c3e37d3e6f60b948997da5c1",
-            size=70_527_166,
-            archive=None,
-            member=None,
-            licence=_STANFORD_TERMS,
-            credit=_XYZRGB_CREDIT,
-            source_of_hash="recorded with the same size by two public projects",
+        _stanford(
+            "xyzrgb-dragon", "Asian Dragon (XYZ RGB)", "data/3Dscanrep/xyzrgb/xyzrgb_dragon.ply.gz",
+            "8aa449f1966cbb50e5896ecc32cf57ab5f0cdfd3c3e37d3e6f60b948997da5c1", 70_527_166,
+            credit=_XYZRGB_CREDIT, up="?",
             notes="7,219,045 triangles; read gzipped as it is.",
         ),
-        RemoteScene(
-            name="thai-statuette",
-            title="Thai Statuette (XYZ RGB)",
-            url=f"{_STANFORD}/data/3Dscanrep/xyzrgb/xyzrgb_statuette.ply.gz",
-            sha256="1d867b6540c02935caa777bd6746429a62d4a5d23f11c9bfdfebbaa90c05ca8b",
-            size=106_051_627,
-            archive=None,
-            member=None,
-            licence=_STANFORD_TERMS,
-            credit=_XYZRGB_CREDIT,
-            source_of_hash="recorded with the same size by two public projects",
+        _stanford(
+            "thai-statuette", "Thai Statuette (XYZ RGB)",
+            "data/3Dscanrep/xyzrgb/xyzrgb_statuette.ply.gz",
+            "1d867b6540c02935caa777bd6746429a62d4a5d23f11c9bfdfebbaa90c05ca8b", 106_051_627,
+            credit=_XYZRGB_CREDIT, up="?",
             notes="10,000,000 triangles; read gzipped as it is.",
         ),
-        RemoteScene(
-            name="staircase",
-            title="The Wooden Staircase",
-            url=f"{_BITTERLI}/staircase.zip",
-            sha256=None,
-            size=None,
-            archive="zip",
-            member="*models/*.ply",
-            licence="CC BY 3.0",
-            credit="Wig42 (blendswap.com/blends/view/77668); pbrt version by Benedikt Bitterli",
-            up="+y",
-            notes=_BITTERLI_NOTE + " All parts have identity transforms.",
+        _bitterli(
+            "staircase", "The Wooden Staircase", "Wig42 (blendswap.com/blends/view/77668)",
+            " All parts have identity transforms.",
         ),
-        RemoteScene(
-            name="living-room",
-            title="The Grey & White Room",
-            url=f"{_BITTERLI}/living-room.zip",
-            sha256=None,
-            size=None,
-            archive="zip",
-            member="*models/*.ply",
-            licence="CC BY 3.0",
-            credit="Wig42 (blendswap.com/blends/view/75795); pbrt version by Benedikt Bitterli",
-            up="+y",
-            notes=_BITTERLI_NOTE + " Seven parts (table and glasses) are translated in the scene.",
+        _bitterli(
+            "living-room", "The Grey & White Room", "Wig42 (blendswap.com/blends/view/75795)",
+            " Seven parts (table and glasses) are translated in the scene.",
         ),
-        RemoteScene(
-            name="kitchen",
-            title="Country Kitchen",
-            url=f"{_BITTERLI}/kitchen.zip",
-            sha256=None,
-            size=None,
-            archive="zip",
-            member="*models/*.ply",
-            licence="CC BY 3.0",
-            credit=(
-                "Jay-Artist (blendswap.com/blends/view/42851); pbrt version by Benedikt Bitterli"
-            ),
-            up="+y",
-            notes=_BITTERLI_NOTE + " All parts have identity transforms.",
+        _bitterli(
+            "kitchen", "Country Kitchen", "Jay-Artist (blendswap.com/blends/view/42851)",
+            " All parts have identity transforms.",
         ),
-        RemoteScene(
-            name="bathroom2",
-            title="Salle de bain",
-            url=f"{_BITTERLI}/bathroom2.zip",
-            sha256=None,
-            size=None,
-            archive="zip",
-            member="*models/*.ply",
-            licence="CC BY 3.0",
-            credit="nacimus (blendswap.com/blends/view/73937); pbrt version by Benedikt Bitterli",
-            up="+y",
-            notes=_BITTERLI_NOTE,
-        ),
+        _bitterli("bathroom2", "Salle de bain", "nacimus (blendswap.com/blends/view/73937)"),
     )
 }
 

@@ -195,17 +195,7 @@ def build_binned_sah(
 ) -> Bvh2:
     """Build a binary BVH with the binned surface area heuristic.
 
-    Parameters
-    ----------
-    mesh : TriangleMesh
-    options : BinnedSahOptions, optional
-    refs : BuildRefs, optional
-        References to build over (e.g. pre-split triangle parts); default one per triangle.
-
-    Returns
-    -------
-    Bvh2
-        Canonical tree; depth at most ``MAX_DEPTH``.
+    The tree's depth is at most ``MAX_DEPTH``.
     """
     opt = options or BinnedSahOptions()
     if refs is None:

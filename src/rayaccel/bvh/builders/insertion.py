@@ -218,17 +218,7 @@ def build_insertion(
 ) -> Bvh2:
     """Build a BVH by insertion (see the module docstring).
 
-    Parameters
-    ----------
-    mesh : TriangleMesh
-    options : InsertionOptions, optional
-    refs : BuildRefs, optional
-        Pre-split references (``+presplit``) to build over instead of the triangles' boxes.
-
-    Returns
-    -------
-    Bvh2
-        Canonical tree; depth at most ``MAX_DEPTH``.
+    The tree's depth is at most ``MAX_DEPTH``.
     """
     opt = options or InsertionOptions()
     prim_lo, prim_hi, prim_id = reference_boxes(mesh, refs, "bvh2.insertion")

@@ -336,17 +336,7 @@ def build_lbvh(
 ) -> Bvh2:
     """Build a linear BVH (see the module docstring).
 
-    Parameters
-    ----------
-    mesh : TriangleMesh
-    options : LbvhOptions, optional
-    refs : BuildRefs, optional
-        References to build over (e.g. pre-split triangle parts); default one per triangle.
-
-    Returns
-    -------
-    Bvh2
-        Canonical tree; depth at most ``MAX_DEPTH``.
+    The tree's depth is at most ``MAX_DEPTH``.
     """
     opt = options or LbvhOptions()
     prim_lo, prim_hi, ids = reference_boxes(mesh, refs, "bvh2.lbvh")

@@ -247,17 +247,7 @@ def build_ploc(
 ) -> Bvh2:
     """Build a BVH by parallel locally-ordered clustering (see the module docstring).
 
-    Parameters
-    ----------
-    mesh : TriangleMesh
-    options : PlocOptions, optional
-    refs : BuildRefs, optional
-        References to build over (e.g. pre-split triangle parts); default one per triangle.
-
-    Returns
-    -------
-    Bvh2
-        Canonical tree; depth at most ``MAX_DEPTH``.
+    The tree's depth is at most ``MAX_DEPTH``.
     """
     opt = options or PlocOptions()
     prim_lo, prim_hi, ids = reference_boxes(mesh, refs, "bvh2.ploc")

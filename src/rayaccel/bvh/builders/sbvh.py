@@ -153,20 +153,10 @@ def build_sbvh(
 ) -> Bvh2:
     """Build a spatial-split BVH (see the module docstring).
 
-    Parameters
-    ----------
-    mesh : TriangleMesh
-    options : SbvhOptions, optional
-    refs : BuildRefs, optional
-        Initial references (e.g. pre-split triangle parts); default one per triangle.
-        Spatial splits clip a reference's triangle and intersect with its current box,
-        so split parts are split further correctly.
-
-    Returns
-    -------
-    Bvh2
-        Canonical tree; ``n_refs <= (1 + duplication_budget) · m`` for ``m`` initial
-        references (``n_prims`` without ``refs``); depth at most ``MAX_DEPTH``.
+    Spatial splits clip a reference's triangle and intersect with its current box, so
+    parts of ``refs`` are split further correctly. The tree has ``n_refs <= (1 +
+    duplication_budget) · m`` references for ``m`` initial ones (``n_prims`` without
+    ``refs``); its depth is at most ``MAX_DEPTH``.
     """
     opt = options or SbvhOptions()
     tri = mesh.triangles()

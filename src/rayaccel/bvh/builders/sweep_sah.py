@@ -86,19 +86,7 @@ def _root_box(prim_lo, prim_hi, t_lo, t_hi):
 def build_sweep_sah(
     mesh: TriangleMesh, options: SweepSahOptions | None = None, refs: BuildRefs | None = None
 ) -> Bvh2:
-    """Build a binary BVH evaluating every split of the sorted centroids.
-
-    Parameters
-    ----------
-    mesh : TriangleMesh
-    options : SweepSahOptions, optional
-    refs : BuildRefs, optional
-        References to build over (e.g. pre-split triangle parts); default one per triangle.
-
-    Returns
-    -------
-    Bvh2
-    """
+    """Build a binary BVH evaluating every split of the sorted centroids."""
     opt = options or SweepSahOptions()
     ref_prim: IntArray | None = None
     if refs is None:

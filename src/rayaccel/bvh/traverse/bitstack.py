@@ -229,23 +229,7 @@ def trace_bvh2_bitstack(
 ) -> HitBatch:
     """Trace rays through a binary BVH with a bitstack and parent links.
 
-    Parameters
-    ----------
-    bvh : Bvh2
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-    query : {"closest", "any"}
-    stats : bool
-        Also return per-ray counters in ``hits.stats``.
-    options : BitstackOptions, optional
-    cache : dict, optional
-        Memo for the derived layouts (an ``Accel`` passes its own).
-
-    Returns
-    -------
-    HitBatch
-        Bit-identical to ``bvh2.stack``.
+    Hits are bit-identical to ``bvh2.stack``'s.
     """
     _ = options
     check_trail_depth(bvh, cache, "bvh2.bitstack")

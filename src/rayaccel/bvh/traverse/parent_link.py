@@ -242,23 +242,7 @@ def trace_bvh2_parent_link(
 ) -> HitBatch:
     """Trace rays through a binary BVH with parent links and no stack.
 
-    Parameters
-    ----------
-    bvh : Bvh2
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-    query : {"closest", "any"}
-    stats : bool
-        Also return per-ray counters in ``hits.stats``.
-    options : ParentLinkOptions, optional
-    cache : dict, optional
-        Memo for the derived layouts (an ``Accel`` passes its own).
-
-    Returns
-    -------
-    HitBatch
-        Bit-identical to ``bvh2.stack``.
+    Hits are bit-identical to ``bvh2.stack``'s.
     """
     _ = options
     packed = packed_layout(bvh, mesh, cache)

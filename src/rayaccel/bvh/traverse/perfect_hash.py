@@ -468,24 +468,8 @@ def trace_bvh2_perfect_hash(
 ) -> HitBatch:
     """Trace rays through a binary BVH with backtracking in constant time.
 
-    Parameters
-    ----------
-    bvh : Bvh2
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-    query : {"closest", "any"}
-    stats : bool
-        Also return per-ray counters in ``hits.stats``.
-    options : PerfectHashOptions, optional
-        Building-block switches (all on by default).
-    cache : dict, optional
-        Memo for the derived layouts (an ``Accel`` passes its own).
-
-    Returns
-    -------
-    HitBatch
-        Bit-identical to ``bvh2.stack`` with every combination of switches.
+    Hits are bit-identical to ``bvh2.stack``'s with every combination of the
+    building-block switches (all on by default).
     """
     opts = options or PerfectHashOptions()
     check_trail_depth(bvh, cache, "bvh2.perfect_hash")

@@ -301,24 +301,7 @@ def trace_bvh2_restart_trail(
 ) -> HitBatch:
     """Trace rays through a binary BVH with a restart trail (and an optional short stack).
 
-    Parameters
-    ----------
-    bvh : Bvh2
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-    query : {"closest", "any"}
-    stats : bool
-        Also return per-ray counters in ``hits.stats``.
-    options : RestartTrailOptions, optional
-        ``short_stack`` entries (default 0).
-    cache : dict, optional
-        Memo for the packed layout (an ``Accel`` passes its own).
-
-    Returns
-    -------
-    HitBatch
-        Bit-identical to ``bvh2.stack``.
+    Hits are bit-identical to ``bvh2.stack``'s.
     """
     opts = options or RestartTrailOptions()
     check_trail_depth(bvh, cache, "bvh2.restart_trail")

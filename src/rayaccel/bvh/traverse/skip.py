@@ -156,24 +156,8 @@ def trace_bvh2_skip(
 ) -> HitBatch:
     """Trace rays through a binary BVH with skip pointers (no stack, fixed child order).
 
-    Parameters
-    ----------
-    bvh : Bvh2
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-    query : {"closest", "any"}
-    stats : bool
-        Also return per-ray counters in ``hits.stats``.
-    options : SkipOptions, optional
-    cache : dict, optional
-        Memo for the derived layouts (an ``Accel`` passes its own).
-
-    Returns
-    -------
-    HitBatch
-        The closest ``t`` equals ``bvh2.stack``'s bit for bit; the primitive may
-        differ at exact ties (see the module docstring).
+    The closest ``t`` equals ``bvh2.stack``'s bit for bit; the primitive may differ at
+    exact ties (see the module docstring).
     """
     _ = options
     packed = packed_layout(bvh, mesh, cache)

@@ -271,27 +271,7 @@ def trace_bvh2_stack(
 ) -> HitBatch:
     """Trace rays through a binary BVH with an ordered stack.
 
-    Parameters
-    ----------
-    bvh : Bvh2
-        The canonical tree; its pairs layout is derived on first use.
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-        The rays to trace.
-    query : {"closest", "any"}
-        ``"any"`` stops each ray at the first hit found.
-    stats : bool
-        Also return per-ray counters in ``hits.stats``.
-    options : StackOptions, optional
-        Traversal options (none yet).
-    cache : dict, optional
-        Memo for the derived packed and pairs layouts (an ``Accel`` passes its own).
-
-    Returns
-    -------
-    HitBatch
-        For ``query="any"``, ``prim >= 0`` marks occluded rays (some hit, not the closest).
+    The pairs layout is derived from the canonical tree on first use.
 
     Raises
     ------

@@ -305,8 +305,7 @@ def trace_bvh2_wide(
 ) -> HitBatch:
     """Trace rays through the wide form of a binary BVH (see the module docstring).
 
-    Parameters and results as :func:`rayaccel.bvh.traverse.stack.trace_bvh2_stack`; the
-    derived wide rows are cached under ``"bvh2.wide4"`` or ``"bvh2.wide8"``.
+    The derived wide rows are cached under ``"bvh2.wide4"`` or ``"bvh2.wide8"``.
     """
     width = (options or WideOptions()).width
     wide = wide_bvh(bvh, mesh, cache, width)

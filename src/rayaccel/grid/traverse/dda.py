@@ -334,23 +334,6 @@ def trace_grid_dda(
 
     Skip data is ignored. An irregular grid is walked cell by cell through its
     expanded boxes (:mod:`rayaccel.grid.traverse.irregular`).
-
-    Parameters
-    ----------
-    grid : UniformGrid
-    mesh : TriangleMesh
-        The mesh ``grid`` was built over.
-    rays : RayBatch
-    query : {"closest", "any"}
-    stats : bool
-        Also return per-ray counters in ``hits.stats``.
-    options : DdaOptions, optional
-    cache : dict, optional
-        Memo for the derived traversal layout (an ``Accel`` passes its own).
-
-    Returns
-    -------
-    HitBatch
     """
     return _trace(grid, mesh, rays, query, stats, options, cache, False)
 
@@ -374,7 +357,7 @@ def trace_grid_skip(
 ) -> HitBatch:
     """Trace rays through a uniform grid, jumping over empty space with its skip data.
 
-    Same parameters and result as :func:`trace_grid_dda`; a grid without skip data
-    (``grid.uniform``) is walked cell by cell.
+    A grid without skip data (``grid.uniform``) is walked cell by cell, and an
+    irregular grid as by :func:`trace_grid_dda`.
     """
     return _trace(grid, mesh, rays, query, stats, options, cache, True)

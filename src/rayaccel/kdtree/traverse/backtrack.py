@@ -77,7 +77,7 @@ def trace_kdtree_backtrack(
     options: KdBacktrackOptions | None = None,
     cache: dict[str, Any] | None = None,
 ) -> HitBatch:
-    """Trace rays through a kd-tree with kd-backtrack (parameters as ``kdtree.stack``)."""
+    """Trace rays through a kd-tree with kd-backtrack."""
     _ = options
     return run_trace(
         trace_kernel(METHOD_BACKTRACK), _arrays(kd, mesh, cache), rays, query, stats

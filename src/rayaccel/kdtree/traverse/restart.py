@@ -43,7 +43,7 @@ def trace_kdtree_restart(
     options: KdRestartOptions | None = None,
     cache: dict[str, Any] | None = None,
 ) -> HitBatch:
-    """Trace rays through a kd-tree with kd-restart (parameters as ``kdtree.stack``)."""
+    """Trace rays through a kd-tree with kd-restart."""
     _ = options
     arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache))
     return run_trace(trace_kernel(METHOD_RESTART), arrays, rays, query, stats)

@@ -134,7 +134,7 @@ def trace_kdtree_ropes(
     options: KdRopesOptions | None = None,
     cache: dict[str, Any] | None = None,
 ) -> HitBatch:
-    """Trace rays through a kd-tree along its ropes (parameters as ``kdtree.stack``)."""
+    """Trace rays through a kd-tree along its ropes."""
     opt = options or KdRopesOptions()
     name = "kdtree.ropes" if opt.optimize else "kdtree.ropes_plain"
     ropes = memoised_layout(cache, name, lambda: rope_layout(kd, opt.optimize))

@@ -57,7 +57,7 @@ def trace_kdtree_short_stack(
     options: KdShortStackOptions | None = None,
     cache: dict[str, Any] | None = None,
 ) -> HitBatch:
-    """Trace rays through a kd-tree with a short stack (parameters as ``kdtree.stack``)."""
+    """Trace rays through a kd-tree with a short stack."""
     opt = options or KdShortStackOptions()
     arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache), ring_size=int(opt.size))
     return run_trace(trace_kernel(METHOD_SHORT_STACK), arrays, rays, query, stats)

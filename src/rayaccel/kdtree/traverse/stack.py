@@ -273,25 +273,7 @@ def trace_kdtree_stack(
     options: KdStackOptions | None = None,
     cache: dict[str, Any] | None = None,
 ) -> HitBatch:
-    """Trace rays through a kd-tree front to back with a stack.
-
-    Parameters
-    ----------
-    kd : KdTree
-    mesh : TriangleMesh
-        The mesh ``kd`` was built over.
-    rays : RayBatch
-    query : {"closest", "any"}
-    stats : bool
-        Also return per-ray counters in ``hits.stats``.
-    options : KdStackOptions, optional
-    cache : dict, optional
-        Memo for the derived trace layout (an ``Accel`` passes its own).
-
-    Returns
-    -------
-    HitBatch
-    """
+    """Trace rays through a kd-tree front to back with a stack."""
     opt = options or KdStackOptions()
     layout = kd_trace_layout(kd, mesh, cache)
     return run_trace(
