@@ -11,8 +11,11 @@ registered traversal by key; extra keywords are that traversal's options::
 
 Precision is the mesh's: ``TriangleMesh(vertices, faces, precision="float64")`` gives an
 accel whose queries take and return float64 (rays, ``t``, ``u``, ``v``) over the same
-float32 structure, its boxes widened to contain the float64 triangles
-(:mod:`rayaccel.bvh.precision`). Only BVH builders (``bvh2.*``) accept float64 meshes.
+float32 structure, made to hold the float64 triangles: BVH boxes widened
+(:mod:`rayaccel.bvh.precision`), kd-tree leaves listing every float64 triangle they
+touch (:mod:`rayaccel.kdtree.precision`), grid cells whose margins already do
+(:mod:`rayaccel.grid.precision`). BVH, kd-tree and grid builders accept float64
+meshes, except ``grid.irregular``.
 """
 
 from __future__ import annotations
@@ -28,10 +31,17 @@ import numpy as np
 from rayaccel import chunked, config, persist, registry
 from rayaccel import refit as refitting
 from rayaccel.bvh import geometry
+from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.precision import conservative_bvh2
 from rayaccel.counters import counters_to_dict, empty_counters
 from rayaccel.dtypes import BoolArray, FloatArray, IntArray
 from rayaccel.errors import AccelFileError, InvalidInputError, UnknownVariantError
+from rayaccel.grid.layouts.two_level import TwoLevelGrid
+from rayaccel.grid.layouts.uniform import UniformGrid
+from rayaccel.grid.precision import FLOAT64_REFUSED
+from rayaccel.grid.precision import check_conservative as check_grid_float64
+from rayaccel.kdtree.layouts.kdtree import KdTree
+from rayaccel.kdtree.precision import check_conservative, conservative_kdtree
 from rayaccel.queries import QUERY_KINDS
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
@@ -550,6 +560,8 @@ class Accel:
     def validate(self) -> None:
         """Check every invariant of the structure; raise ``StructureInvariantError`` if broken."""
         self.structure.validate(self.mesh.triangles())
+        if self.mesh.precision == "float64":
+            _check_float64(self.structure, self.mesh)
 
     # -- deformation, files and copies ---------------------------------------------------------
 
@@ -661,8 +673,31 @@ class Accel:
         self._lock = threading.Lock()
 
 
-#: Structures whose builders accept float64 meshes (boxes widened by one float32 ulp).
-FLOAT64_STRUCTURES = ("bvh2",)
+#: Structures whose builders accept float64 meshes: BVH boxes widened by one float32 ulp
+#: (:mod:`rayaccel.bvh.precision`), kd-tree leaves listing every float64 triangle they
+#: touch (:mod:`rayaccel.kdtree.precision`), grid cells whose margins already exceed the
+#: float64 triangles' offset (:mod:`rayaccel.grid.precision`; ``grid.irregular`` is
+#: refused, :data:`rayaccel.grid.precision.FLOAT64_REFUSED`).
+FLOAT64_STRUCTURES = ("bvh2", "kdtree", "grid")
+
+
+def _conservative(structure: Any, mesh: TriangleMesh) -> Any:
+    """Return ``structure`` made to hold ``mesh``'s float64 triangles (as it is for float32)."""
+    if mesh.precision != "float64":
+        return structure
+    if isinstance(structure, Bvh2):
+        return conservative_bvh2(structure, mesh)
+    if isinstance(structure, KdTree):
+        return conservative_kdtree(structure, mesh)
+    return structure
+
+
+def _check_float64(structure: Any, mesh: TriangleMesh) -> None:
+    """Raise ``StructureInvariantError`` unless ``structure`` holds the float64 triangles."""
+    if isinstance(structure, KdTree):
+        check_conservative(structure, mesh)
+    elif isinstance(structure, (UniformGrid, TwoLevelGrid)):
+        check_grid_float64(structure, mesh)
 
 
 def _is_device_rays(rays: Any) -> bool:
@@ -702,14 +737,18 @@ def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
         ``mesh`` is not a TriangleMesh, an option is out of range, the key chains more
         than one pre-build step, the builder cannot take pre-built references, or
         the mesh is float64 and the builder's structure is not one of
-        :data:`FLOAT64_STRUCTURES`.
+        :data:`FLOAT64_STRUCTURES` (or the builder is ``grid.irregular``).
 
     Notes
     -----
     A float64 mesh (``TriangleMesh(..., precision="float64")``) is built over its float32
-    rounding like any other; the tree's boxes are then widened to contain the float64
-    triangles (:func:`rayaccel.bvh.precision.conservative_bvh2`, included in
-    ``build_ms``), and every traversal of the structure traces float64 rays.
+    rounding like any other, then made to hold the float64 triangles (included in
+    ``build_ms``): a BVH's boxes widened by one float32 ulp
+    (:func:`rayaccel.bvh.precision.conservative_bvh2`), a kd-tree's scene box widened
+    and each float64 triangle added to every leaf it touches
+    (:func:`rayaccel.kdtree.precision.conservative_kdtree`); a grid's cell margins hold
+    them already (:mod:`rayaccel.grid.precision`). Every traversal of the structure
+    traces float64 rays.
     """
     if not isinstance(mesh, TriangleMesh):
         raise InvalidInputError(
@@ -723,7 +762,18 @@ def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
             f"{key}: a {variant.structure!r} cannot hold a float64 mesh (its split planes "
             "and cells are placed between float32 triangles); precision='float64' is "
             f"supported by the {', '.join(FLOAT64_STRUCTURES)} builders: "
-            + ", ".join(registry.keys("builder", FLOAT64_STRUCTURES[0]))
+            + ", ".join(
+                k
+                for s in FLOAT64_STRUCTURES
+                for k in registry.keys("builder", s)
+                if k not in FLOAT64_REFUSED
+            )
+        )
+    if mesh.precision == "float64" and variant.key in FLOAT64_REFUSED:
+        raise InvalidInputError(
+            f"{key}: cannot hold a float64 mesh yet ({FLOAT64_REFUSED[variant.key]}); "
+            "precision='float64' grids: "
+            + ", ".join(k for k in registry.keys("builder", "grid") if k not in FLOAT64_REFUSED)
         )
     start = time.perf_counter()
     step_ms: dict[str, float] = {}
@@ -743,8 +793,8 @@ def build(mesh: TriangleMesh, key: str | None = None, **options: Any) -> Accel:
             step_start = time.perf_counter()
             structure = step.func(structure, mesh, step_opt)
             step_ms[step.key] = (time.perf_counter() - step_start) * 1e3
-        # Float64 meshes: every box must contain the float64 triangles (bvh/precision.py).
-        structure = conservative_bvh2(structure, mesh)
+        # Float64 meshes: the structure must hold the float64 triangles.
+        structure = _conservative(structure, mesh)
     build_ms = (time.perf_counter() - start) * 1e3
     accel = Accel(key, mesh, structure, opts, build_ms, step_ms)
     accel.step_options = {s.key.split("+", 1)[1]: o for s, o in (*before, *after)}

@@ -396,12 +396,15 @@ def trace_layout(grid: UniformGrid, hit_rows: FloatArray, mailbox: int) -> GridT
     ``mailbox`` the per-ray mailbox size (0 disables it).
     """
     rows = gather_rows(hit_rows, grid.prim_index)
+    # The cell planes in the rows' precision: float64 rays compute lo + k·size in float64
+    # from the same float32 values (see the module docstring).
+    real = hit_rows.dtype
     return with_mailbox(
         GridTrace(
             box=interleaved_box(grid.lo, grid.hi),
-            lo=grid.lo.copy(),
-            size=((grid.hi - grid.lo) / grid.res).astype(REAL),
-            inv_size=(grid.res / (grid.hi - grid.lo)).astype(REAL),
+            lo=grid.lo.astype(real),
+            size=((grid.hi - grid.lo) / grid.res).astype(REAL).astype(real),
+            inv_size=(grid.res / (grid.hi - grid.lo)).astype(REAL).astype(real),
             res=grid.res.copy(),
             cell_start=grid.cell_start,
             tri=rows,

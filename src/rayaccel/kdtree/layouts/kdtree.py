@@ -559,7 +559,7 @@ def trace_layout(kd: KdTree, hit_rows: FloatArray) -> KdTraceLayout:
         nodes=kd.nodes,
         leaf_first=kd.leaf_first,
         leaf_count=kd.leaf_count,
-        tri=np.ascontiguousarray(hit_rows[kd.prim_index], dtype=REAL),
+        tri=np.ascontiguousarray(hit_rows[kd.prim_index]),
         tri_prim=np.ascontiguousarray(kd.prim_index),
         root_box=root_box,
     )
