@@ -17,10 +17,11 @@ CAMERA = PinholeCamera((1.0, 2.0, 3.0), (1.0, 2.0, -1.0), (0.0, 1.0, 0.0), 50.0,
 
 
 def test_view_names():
-    assert parse_view("preset") == ("eye", 0.0)
-    assert parse_view("yaw120") == ("eye", 120.0)
-    assert parse_view("orbit-37.5") == ("target", -37.5)
-    for bad in ("yaw", "turn90", "yaw1e400", "orbit 90", "", "YAW90"):
+    assert parse_view("preset") == []
+    assert parse_view("yaw120") == [("yaw", 120.0)]
+    assert parse_view("orbit-37.5") == [("orbit", -37.5)]
+    assert parse_view("walk0.5+yaw180") == [("walk", 0.5), ("yaw", 180.0)]
+    for bad in ("yaw", "turn90", "yaw1e400", "orbit 90", "", "YAW90", "yaw90+", "preset+yaw9"):
         with pytest.raises(InvalidInputError, match="view"):
             parse_view(bad)
 
@@ -31,6 +32,7 @@ def test_a_view_is_split_off_a_scene_spec_only_when_it_names_one():
     assert split_view("living_room") == ("living_room", None)
     assert split_view("shots@home/room.obj") == ("shots@home/room.obj", None)
     assert split_view("@yaw90") == ("@yaw90", None)
+    assert split_view("kitchen@walk0.3+yaw180") == ("kitchen", "walk0.3+yaw180")
 
 
 def test_yaw_turns_in_place_and_orbit_keeps_the_target():
@@ -46,6 +48,9 @@ def test_yaw_turns_in_place_and_orbit_keeps_the_target():
         assert (view.up, view.fov_deg, view.width, view.height) == (
             CAMERA.up, CAMERA.fov_deg, CAMERA.width, CAMERA.height)
     assert turned(CAMERA, "preset") is CAMERA
+    back = turned(CAMERA, "walk0.5+yaw180")
+    assert np.allclose(back.eye, [1.0, 2.0, 1.0])
+    assert np.allclose(back.target, [1.0, 2.0, 5.0])
     assert np.allclose(turned(CAMERA, "yaw360").target, target)
 
 
