@@ -10,7 +10,10 @@ interleaved so the noise of a shared machine hits both alike; the report is the 
 over rounds after one warm-up round (compilation), and ``ratio`` is float64 Mrays/s over
 float32 Mrays/s in the same run (tinybvh reports about 0.91 for its 4-wide BVH);
 ``ratio(min)`` compares the fastest rounds, the least disturbed on a shared machine. Hits
-are compared before timing (the same triangle on all but a few rays).
+are compared before timing (the same triangle on all but a few rays). ``--pair
+BUILDER:TRAVERSAL`` (repeatable) times other structures instead, e.g. ``kdtree.sah:
+kdtree.stack`` or ``grid.uniform:grid.dda`` (a float64 kd-tree lists a few more
+references, :mod:`rayaccel.kdtree.precision`).
 
     NUMBA_NUM_THREADS=2 RAYACCEL_SCENE_PATH=../shared/scenes \\
         python benchmarks/bench_float64.py sphereflake stanford-bunny --rounds 5
@@ -31,6 +34,7 @@ from rayaccel.errors import SceneFileError
 from rayaccel.rays.camera import frame_bounds
 
 DEFAULT_SCENES = ("sphereflake", "stanford-bunny")
+BUILDER = "bvh2.binned_sah"
 TRAVERSALS = (("bvh2.stack", {}), ("bvh2.wide", {"width": 4}), ("bvh2.wide", {"width": 8}))
 
 
@@ -41,17 +45,26 @@ def run_scene(name: str, args: argparse.Namespace) -> list[dict[str, object]]:
         print(f"{name}: skipped ({exc})", file=sys.stderr)
         return []
     vertices = scene.vertices.astype(np.float64)
-    accels = {
-        p: rayaccel.build(rayaccel.TriangleMesh(vertices, scene.faces, name, precision=p))
-        for p in ("float32", "float64")
-    }
+    pairs = [(BUILDER, key, options) for key, options in TRAVERSALS]
+    if args.pair:
+        pairs = [(*pair.split(":", 1), {}) for pair in args.pair]
+    built: dict[str, dict[str, rayaccel.Accel]] = {}
+    for builder, _, _ in pairs:
+        if builder not in built:
+            built[builder] = {
+                p: rayaccel.build(
+                    rayaccel.TriangleMesh(vertices, scene.faces, name, precision=p), builder
+                )
+                for p in ("float32", "float64")
+            }
     lo, hi = (b.astype(np.float64) for b in scene.bounds())
     camera = frame_bounds(lo, hi, width=args.width, height=args.width)
     rays32 = camera.rays()
     rays = {"float32": rays32, "float64": rays32.astype("float64")}
     n = rays32.n_rays
     rows = []
-    for key, options in TRAVERSALS:
+    for builder, key, options in pairs:
+        accels = built[builder]
         label = key + (f"[{options['width']}]" if options else "")
         hits = {p: accels[p].trace(rays[p], traversal=key, **options) for p in rays}
         differ = int((hits["float32"].prim != hits["float64"].prim).sum())
@@ -98,6 +111,12 @@ def main(argv: list[str] | None = None) -> int:
         default=1 << 30,
         help="trace in batches of this many rays (below 4096: the serial kernels, no "
         "parallel launch, the steadiest timings on a loaded machine)",
+    )
+    parser.add_argument(
+        "--pair",
+        action="append",
+        metavar="BUILDER:TRAVERSAL",
+        help="time this builder and traversal instead of the bvh2 ones (repeatable)",
     )
     args = parser.parse_args(argv)
     print(

@@ -220,16 +220,11 @@ def test_precision_is_checked():
     mesh = rayaccel.TriangleMesh(v + SHIFT, faces, precision="float64")
     with pytest.raises(InvalidInputError, match=r"float64.*grid\.uniform"):
         rayaccel.build(mesh, "grid.irregular")
-    # Queries not yet done in float64 refuse rather than round to float32.
+    # The pausable traversal (a float32 debugging view) refuses rather than round.
     accel = _accel("icosphere")
     o, d = SHIFT + 20.0, -np.ones(3)
-    for query in (
-        lambda: accel.count_intersections(o[None], d[None]),
-        lambda: accel.compute_closest_points(o[None]),
-        lambda: accel.traversal_state(o[None], d[None]),
-    ):
-        with pytest.raises(InvalidInputError, match="float64 accel"):
-            query()
+    with pytest.raises(InvalidInputError, match=r"traversal_state.*float64 accel"):
+        accel.traversal_state(o[None], d[None])
 
 
 def test_float32_default_is_unchanged():
@@ -275,3 +270,110 @@ def test_float64_accel_keeps_its_precision(tmp_path):
     shifted = rays.origin + np.array([0.3, -0.2, 0.45])
     moved_rays = RayBatch(shifted, rays.direction, precision="float64")
     np.testing.assert_array_equal(refitted.trace(moved_rays).prim, fresh.trace(moved_rays).prim)
+
+
+# -- Open3D-style geometry queries in float64 ------------------------------------------------
+
+
+def _all_hits_float64(tri: np.ndarray, rays: RayBatch) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every ``(t, prim)`` of each ray by float64 Möller–Trumbore, sorted by ``t``."""
+    a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    out = []
+    for o, d in zip(rays.origin, rays.direction, strict=True):
+        p = np.cross(d, e2)
+        det = (e1 * p).sum(1)
+        inv = 1.0 / np.where(det != 0, det, 1.0)
+        s = o - a
+        u = (s * p).sum(1) * inv
+        q = np.cross(s, e1)
+        v = (q * d).sum(1) * inv
+        t = (q * e2).sum(1) * inv
+        hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0)
+        idx = np.flatnonzero(hit)
+        order = np.argsort(t[idx], kind="stable")
+        out.append((t[idx][order], idx[order]))
+    return out
+
+
+def _point_triangle_d2(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Squared float64 distance from ``p`` to every triangle (interior or nearest edge)."""
+    a, b, c = tri[:, 0] - p, tri[:, 1] - p, tri[:, 2] - p  # moved to the point: exact-ish
+    best = np.full(len(tri), np.inf)
+    for s, e in ((a, b), (b, c), (c, a)):
+        d = e - s
+        t = np.clip(-(s * d).sum(1) / (d * d).sum(1), 0.0, 1.0)
+        best = np.minimum(best, ((s + t[:, None] * d) ** 2).sum(1))
+    n = np.cross(b - a, c - a)
+    h = (a * n).sum(1) / (n * n).sum(1)
+    q = h[:, None] * n
+    inside = np.ones(len(tri), dtype=bool)
+    for s, e in ((a, b), (b, c), (c, a)):
+        inside &= (np.cross(e - s, q - s) * n).sum(1) >= 0
+    return np.where(inside, np.minimum(best, (q**2).sum(1)), best)
+
+
+def _shell_points(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points inside (radius < 4.3) and outside (radius > 5.5) the sphere of radius 5."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    radius = np.where(np.arange(n) % 2 == 0, rng.uniform(3.0, 4.3, n), rng.uniform(5.5, 7.0, n))
+    return SHIFT + d * radius[:, None], np.arange(n) % 2 == 0
+
+
+@pytest.mark.parametrize("key", ["bvh2.binned_sah", "bvh2.sbvh", "kdtree.sah", "grid.uniform"])
+def test_geometry_queries_answer_in_float64(key):
+    """count/list intersections, closest points, distances, signed distance and occupancy
+    of a sphere at 1e7 equal float64 numpy oracles (a companion BVH serves kd and grid)."""
+    mesh = _scene("icosphere", "float64")
+    accel = rayaccel.build(mesh, key)
+    tri = mesh.vertices64[mesh.faces]
+    rays = _rays(mesh, n=64, seed=6)
+    listed = accel.list_intersections(rays.origin, rays.direction)
+    counts = accel.count_intersections(rays.origin, rays.direction)
+    assert listed.t_hit.dtype == np.float64
+    assert listed.primitive_uvs.dtype == np.float64
+    for r, (ref_t, ref_prim) in enumerate(_all_hits_float64(tri, rays)):
+        got = slice(listed.ray_splits[r], listed.ray_splits[r + 1])
+        assert counts[r] == ref_t.size
+        np.testing.assert_array_equal(listed.primitive_ids[got], ref_prim)
+        np.testing.assert_allclose(listed.t_hit[got], ref_t, rtol=1e-9)
+    points, inside = _shell_points(60, seed=8)
+    near = SHIFT + (points - SHIFT) * 5.0 / np.linalg.norm(points - SHIFT, axis=1)[:, None]
+    near += np.random.default_rng(9).normal(size=near.shape) * 0.3
+    points = np.concatenate([points, near])
+    d2 = np.array([_point_triangle_d2(tri, p) for p in points])
+    ref = np.sqrt(d2.min(axis=1))
+    closest = accel.compute_closest_points(points)
+    for name in ("points", "primitive_uvs", "primitive_normals", "distance"):
+        assert closest[name].dtype == np.float64, name
+    np.testing.assert_allclose(closest.distance, ref, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(
+        np.linalg.norm(closest.points - points, axis=1), closest.distance, rtol=0, atol=1e-7
+    )
+    same = d2[np.arange(len(points)), closest.primitive_ids] <= d2.min(axis=1) + 1e-9
+    assert same.all()
+    distance = accel.compute_distance(points)
+    assert distance.dtype == np.float64
+    np.testing.assert_allclose(distance, ref, rtol=0, atol=1e-7)
+    shells = points[:60]
+    for method in ("winding", "parity"):
+        signed = accel.compute_signed_distance(shells, method=method)
+        assert signed.dtype == np.float64
+        np.testing.assert_allclose(signed, np.where(inside, -ref[:60], ref[:60]), atol=1e-7)
+        occupancy = accel.compute_occupancy(shells, method=method)
+        assert occupancy.dtype == np.float64
+        np.testing.assert_array_equal(occupancy, inside.astype(float))
+
+
+def test_float32_geometry_queries_lose_what_float64_keeps():
+    """The same sphere in float32: its vertices snap to a 1 m grid, distances err by ~0.5 m."""
+    mesh64 = _scene("icosphere", "float64")
+    accel32 = rayaccel.build(_scene("icosphere", "float32"), "bvh2.binned_sah")
+    points, _ = _shell_points(60, seed=8)
+    ref = np.sqrt(np.array([_point_triangle_d2(mesh64.vertices64[mesh64.faces], p).min()
+                            for p in points]))  # fmt: skip
+    err32 = np.abs(accel32.compute_distance(points).astype(np.float64) - ref)
+    err64 = np.abs(_accel("icosphere").compute_distance(points) - ref)
+    assert err64.max() < 1e-7
+    assert np.median(err32) > 0.05, np.median(err32)

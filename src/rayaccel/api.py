@@ -356,7 +356,12 @@ class Accel:
         InvalidInputError
             No traversal of this structure can pause and resume.
         """
-        self._require_float32("traversal_state")
+        if self.precision != "float32":
+            raise InvalidInputError(
+                "traversal_state: a float32 accel's debugging view of the traversal order "
+                "(its pausable walk keeps float32 state); a float64 accel lists every hit "
+                "in float64 with list_intersections"
+            )
         _, start = registry.pausable(self.structure_name)
         rays = RayBatch(origins, directions, tmin, tmax)
         with self._lock:
@@ -365,16 +370,7 @@ class Accel:
 
     # -- Open3D's geometry queries (rayaccel.bvh.geometry) ---------------------------------------
 
-    def _require_float32(self, what: str) -> None:
-        """Raise for a query that float64 accels cannot answer in float64 yet."""
-        if self.precision != "float32":
-            raise InvalidInputError(
-                f"{what}: not available for a float64 accel yet (it would round the "
-                "inputs or the hits to float32); intersect, occluded and trace work in float64"
-            )
-
     def _geometry_snapshot(self) -> tuple[Any, TriangleMesh, dict[str, Any]]:
-        self._require_float32("Open3D-style geometry queries")
         with self._lock:
             return self.structure, self.mesh, self._cache
 
@@ -389,7 +385,7 @@ class Accel:
         ``bvh2`` is walked directly; other structures get a companion BVH on first use
         (:mod:`rayaccel.bvh.geometry`).
         """
-        rays = RayBatch(origins, directions, tmin, tmax)
+        rays = RayBatch(origins, directions, tmin, tmax, precision=self.precision)
         structure, mesh, cache = self._geometry_snapshot()
         return geometry.count_intersections(structure, mesh, rays, cache)
 
@@ -404,7 +400,7 @@ class Accel:
         (:class:`rayaccel.bvh.geometry.IntersectionList`, also indexable by those
         names). Arguments as :meth:`intersect`.
         """
-        rays = RayBatch(origins, directions, tmin, tmax)
+        rays = RayBatch(origins, directions, tmin, tmax, precision=self.precision)
         structure, mesh, cache = self._geometry_snapshot()
         return geometry.list_intersections(structure, mesh, rays, cache)
 
@@ -431,7 +427,10 @@ class Accel:
         return geometry.closest(structure, mesh, query, cache)
 
     def compute_distance(self, points: Any) -> FloatArray:
-        """Return ``(n,)`` float32 distances from each point to the mesh (unsigned)."""
+        """Return ``(n,)`` distances from each point to the mesh (unsigned).
+
+        float32, or float64 for a float64 accel (as every geometry query's floats).
+        """
         query = geometry.coerce_points(points)
         structure, mesh, cache = self._geometry_snapshot()
         return geometry.distance(structure, mesh, query, cache)
@@ -439,7 +438,7 @@ class Accel:
     def compute_signed_distance(
         self, points: Any, *, method: str = "winding", n_rays: int = 3
     ) -> FloatArray:
-        """Return ``(n,)`` float32 distances to the mesh, negative inside.
+        """Return ``(n,)`` distances to the mesh, negative inside (float64 for a float64 accel).
 
         Parameters
         ----------
@@ -461,7 +460,7 @@ class Accel:
     def compute_occupancy(
         self, points: Any, *, method: str = "winding", n_rays: int = 3
     ) -> FloatArray:
-        """Return ``(n,)`` float32: 1 for points inside the mesh, 0 outside.
+        """Return ``(n,)`` 1 for points inside the mesh, 0 outside (float64 for float64 accels).
 
         Open3D's ``RaycastingScene.compute_occupancy``; ``method`` and ``n_rays`` as in
         :meth:`compute_signed_distance`.

@@ -26,6 +26,12 @@ nothing), while ray parity depends on which directions escape through the holes.
 The winding number also needs a consistent orientation (outward normals, counter-
 clockwise corners seen from outside); parity ignores orientation.
 
+Precision: a float64 accel (``TriangleMesh(..., precision="float64")``) answers in
+float64: rays, points, ``t``, barycentrics, closest points, normals and distances, over
+its float32 tree with boxes widened to contain the float64 triangles
+(:mod:`rayaccel.bvh.precision`; a companion tree is widened the same way), so every
+bound the walks prune by still holds.
+
 Structures: a ``bvh2`` accel is queried through its own tree (the winding number
 needs each triangle once in the tree, so a tree with spatial splits gets a
 companion tree for it). Other families (``kdtree``, ``grid``) have no box hierarchy
@@ -42,6 +48,7 @@ import numpy as np
 
 from rayaccel.bvh.builders.binned_sah import build_binned_sah
 from rayaccel.bvh.layouts.bvh2 import Bvh2
+from rayaccel.bvh.precision import conservative_bvh2
 from rayaccel.bvh.traverse.all_hits import count_all_hits, list_all_hits
 from rayaccel.bvh.traverse.closest_point import barycentric_points, closest_points
 from rayaccel.bvh.traverse.winding import winding_numbers
@@ -108,11 +115,11 @@ class IntersectionList(_FieldMapping):
         Ray ``r``'s hits are entries ``ray_splits[r]:ray_splits[r + 1]``.
     ray_ids : (n_hits,) int32
         The ray of each hit.
-    t_hit : (n_hits,) float32
+    t_hit : (n_hits,) float32 (float64 for a float64 accel)
         Distance along the ray, in units of its direction's length.
     primitive_ids : (n_hits,) int32
         The triangle hit.
-    primitive_uvs : (n_hits, 2) float32
+    primitive_uvs : (n_hits, 2) float32 (float64 for a float64 accel)
         Barycentrics ``(u, v)`` of the hit point ``(1-u-v)·A + u·B + v·C``.
     """
 
@@ -129,17 +136,17 @@ class ClosestPoints(_FieldMapping):
 
     Also readable as a mapping (``result["points"]``), like Open3D's dict.
 
-    Attributes
+    Attributes (float32, or float64 for a float64 accel)
     ----------
-    points : (n, 3) float32
+    points : (n, 3) float
         The closest point on the mesh.
     primitive_ids : (n,) int32
         Its triangle (the lowest id among triangles at exactly the same distance).
-    primitive_uvs : (n, 2) float32
+    primitive_uvs : (n, 2) float
         Its barycentrics ``(u, v)`` on that triangle: ``(1-u-v)·A + u·B + v·C``.
-    primitive_normals : (n, 3) float32
+    primitive_normals : (n, 3) float
         The triangle's unit geometric normal.
-    distance : (n,) float32
+    distance : (n,) float
         Euclidean distance from the query point (computed in float64).
     """
 
@@ -189,7 +196,9 @@ def query_bvh(
     if isinstance(structure, Bvh2) and (not unique or structure.n_refs == structure.n_prims):
         return structure, cache
     companion = memoised_layout(
-        cache, "geometry.bvh2", lambda: CompanionBvh(build_binned_sah(mesh), {})
+        cache,
+        "geometry.bvh2",
+        lambda: CompanionBvh(conservative_bvh2(build_binned_sah(mesh), mesh), {}),
     )
     return companion.bvh, companion.cache
 
@@ -209,7 +218,7 @@ def list_intersections(
     bvh, memo = query_bvh(structure, mesh, cache)
     splits, t, prim, u, v = list_all_hits(bvh, mesh, rays, memo)
     ray_ids = np.repeat(np.arange(rays.n_rays, dtype=np.int32), np.diff(splits))
-    uvs = np.ascontiguousarray(np.stack([u, v], axis=1), dtype=REAL).reshape(-1, 2)
+    uvs = np.ascontiguousarray(np.stack([u, v], axis=1), dtype=t.dtype).reshape(-1, 2)
     return IntersectionList(splits, ray_ids, t, prim, uvs)
 
 
@@ -220,24 +229,47 @@ def closest(
     bvh, memo = query_bvh(structure, mesh, cache)
     d2, prim, u, v = closest_points(bvh, mesh, points, memo)
     n = points.shape[0]
+    real = real_of(mesh)
     if n == 0:
-        zero = np.zeros((0, 3), dtype=REAL)
+        zero = np.zeros((0, 3), dtype=real)
         return ClosestPoints(
-            zero, prim, np.zeros((0, 2), dtype=REAL), zero.copy(), np.zeros(0, dtype=REAL)
+            zero, prim, np.zeros((0, 2), dtype=real), zero.copy(), np.zeros(0, dtype=real)
         )
-    where = barycentric_points(mesh, prim, u, v).astype(REAL)
-    uvs = np.stack([u, v], axis=1).astype(REAL)
-    normals = memoised_layout(memo, "geometry.normals", lambda: MemoArray(mesh.normals())).array
-    return ClosestPoints(where, prim, uvs, normals[prim], np.sqrt(d2).astype(REAL))
+    where = barycentric_points(mesh, prim, u, v).astype(real)
+    uvs = np.stack([u, v], axis=1).astype(real)
+    normals = memoised_layout(
+        memo, "geometry.normals", lambda: MemoArray(mesh_normals(mesh))
+    ).array
+    return ClosestPoints(where, prim, uvs, normals[prim], np.sqrt(d2).astype(real))
+
+
+def real_of(mesh: TriangleMesh) -> type[np.floating[Any]]:
+    """Return the float type these queries answer in: float32, or float64 for a float64 mesh."""
+    return np.float64 if mesh.precision == "float64" else REAL
+
+
+def mesh_normals(mesh: TriangleMesh) -> np.ndarray:
+    """Return ``(F, 3)`` unit geometric normals in the mesh's precision (float64 corners)."""
+    if mesh.vertices64 is None:
+        return mesh.normals()
+    tri = mesh.vertices64[mesh.faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(cross, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit: np.ndarray = np.where(length > 0, cross / np.where(length > 0, length, 1.0), 0.0)
+    return unit
 
 
 def distance(
     structure: Any, mesh: TriangleMesh, points: np.ndarray, cache: dict[str, Any] | None = None
 ) -> np.ndarray:
-    """Return ``(n,)`` float32 distances from each point to the mesh (computed in float64)."""
+    """Return ``(n,)`` distances from each point to the mesh (computed in float64).
+
+    float32, or float64 for a float64 mesh.
+    """
     bvh, memo = query_bvh(structure, mesh, cache)
     d2 = closest_points(bvh, mesh, points, memo)[0]
-    out: FloatArray = np.sqrt(d2).astype(REAL)
+    out: FloatArray = np.sqrt(d2).astype(real_of(mesh))
     return out
 
 
@@ -285,7 +317,9 @@ def inside(
     bvh, memo = query_bvh(structure, mesh, cache)
     votes = np.zeros(n, dtype=np.int32)
     for direction in parity_directions(int(n_rays)):
-        rays = RayBatch(points, np.broadcast_to(direction, (n, 3)), 0.0, np.inf)
+        rays = RayBatch(
+            points, np.broadcast_to(direction, (n, 3)), 0.0, np.inf, precision=mesh.precision
+        )
         votes += count_all_hits(bvh, mesh, rays, memo) % 2
     return votes > int(n_rays) // 2
 
@@ -308,11 +342,14 @@ def signed_distance(
     method: str = "winding",
     n_rays: int = 3,
 ) -> np.ndarray:
-    """Return ``(n,)`` float32 distances to the mesh, negative inside (:func:`inside`)."""
+    """Return ``(n,)`` distances to the mesh, negative inside (:func:`inside`).
+
+    float32, or float64 for a float64 mesh.
+    """
     _check_method(method, n_rays)
     dist = distance(structure, mesh, points, cache)
     sign = np.where(inside(structure, mesh, points, cache, method=method, n_rays=n_rays), -1.0, 1.0)
-    return (dist * sign).astype(REAL)
+    return (dist * sign).astype(real_of(mesh))
 
 
 def occupancy(
@@ -324,5 +361,10 @@ def occupancy(
     method: str = "winding",
     n_rays: int = 3,
 ) -> FloatArray:
-    """Return ``(n,)`` float32: 1 inside the mesh, 0 outside (Open3D's ``compute_occupancy``)."""
-    return inside(structure, mesh, points, cache, method=method, n_rays=n_rays).astype(REAL)
+    """Return ``(n,)`` 1 inside the mesh, 0 outside (Open3D's ``compute_occupancy``).
+
+    float32, or float64 for a float64 mesh.
+    """
+    return inside(structure, mesh, points, cache, method=method, n_rays=n_rays).astype(
+        real_of(mesh)
+    )

@@ -146,10 +146,10 @@ def _all_hits_kernel(fill: bool, parallel: bool) -> Any:
             # Per-worker scratch: the stack, the mailbox and the sort buffers.
             stack = np.empty(STACK_SIZE, dtype=np.int32)
             mailbox = np.full(n_mailbox, -1, dtype=np.int32)
-            buf_t = np.empty(max_hits, dtype=np.float32)
+            buf_t = np.empty(max_hits, dtype=out_t.dtype)
             buf_prim = np.empty(max_hits, dtype=np.int32)
-            buf_u = np.empty(max_hits, dtype=np.float32)
-            buf_v = np.empty(max_hits, dtype=np.float32)
+            buf_u = np.empty(max_hits, dtype=out_t.dtype)
+            buf_v = np.empty(max_hits, dtype=out_t.dtype)
             while True:
                 chunk = next_item(counter, n_chunks)
                 if chunk < 0:
@@ -256,12 +256,14 @@ def _run(
         kernel(*args)
 
 
-def _empty_out(n: int) -> tuple[FloatArray, IntArray, FloatArray, FloatArray]:
+def _empty_out(n: int, precision: str) -> tuple[FloatArray, IntArray, FloatArray, FloatArray]:
+    """Return the output ``t, prim, u, v`` arrays: ``t, u, v`` in the rays' precision."""
+    real = np.float64 if precision == "float64" else np.float32
     return (
-        np.empty(n, dtype=np.float32),
+        np.empty(n, dtype=real),
         np.empty(n, dtype=np.int32),
-        np.empty(n, dtype=np.float32),
-        np.empty(n, dtype=np.float32),
+        np.empty(n, dtype=real),
+        np.empty(n, dtype=real),
     )
 
 
@@ -288,7 +290,7 @@ def count_all_hits(
     arrays = packed_layout(bvh, mesh, cache).arrays()
     n_mailbox = bvh.n_prims if bvh.n_refs > bvh.n_prims else 0
     splits = np.zeros(1, dtype=np.int64)
-    _run(False, arrays, rays, n_mailbox, counts, splits, _empty_out(0), 0)
+    _run(False, arrays, rays, n_mailbox, counts, splits, _empty_out(0, rays.precision), 0)
     return counts
 
 
@@ -310,20 +312,20 @@ def list_all_hits(
     -------
     splits : (n_rays + 1,) int64
         Ray ``r``'s hits are entries ``splits[r]:splits[r + 1]`` (Open3D's ``ray_splits``).
-    t : (n_hits,) float32
+    t : (n_hits,) float32 (float64 for float64 rays)
     prim : (n_hits,) int32
-    u, v : (n_hits,) float32
+    u, v : (n_hits,) float32 (float64 for float64 rays)
         Barycentrics of each hit: ``(1-u-v)·A + u·B + v·C``.
     """
     n = rays.n_rays
     counts = np.zeros(n, dtype=np.int32)
     splits = np.zeros(n + 1, dtype=np.int64)
     if n == 0:
-        return (splits, *_empty_out(0))
+        return (splits, *_empty_out(0, rays.precision))
     arrays = packed_layout(bvh, mesh, cache).arrays()
     n_mailbox = bvh.n_prims if bvh.n_refs > bvh.n_prims else 0
-    _run(False, arrays, rays, n_mailbox, counts, splits, _empty_out(0), 0)
+    _run(False, arrays, rays, n_mailbox, counts, splits, _empty_out(0, rays.precision), 0)
     np.cumsum(counts, out=splits[1:])
-    out = _empty_out(int(splits[-1]))
+    out = _empty_out(int(splits[-1]), rays.precision)
     _run(True, arrays, rays, n_mailbox, counts, splits, out, int(counts.max()))
     return (splits, *out)

@@ -194,7 +194,11 @@ def closest_points(
 
 
 def barycentric_points(mesh: TriangleMesh, prim: IntArray, u: np.ndarray, v: np.ndarray) -> Any:
-    """Return ``(n, 3)`` float64 points ``(1-u-v)·A + u·B + v·C`` on triangles ``prim``."""
-    corners = mesh.vertices[mesh.faces[prim]].astype(np.float64)
+    """Return ``(n, 3)`` float64 points ``(1-u-v)·A + u·B + v·C`` on triangles ``prim``.
+
+    The corners are the float64 ones of a float64 mesh.
+    """
+    vertices = mesh.vertices if mesh.vertices64 is None else mesh.vertices64
+    corners = vertices[mesh.faces[prim]].astype(np.float64)
     w = (1.0 - u - v)[:, None]
     return w * corners[:, 0] + u[:, None] * corners[:, 1] + v[:, None] * corners[:, 2]
