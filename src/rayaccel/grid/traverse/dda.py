@@ -26,10 +26,20 @@ the cell beyond, computed exactly on the exit axis and clamped into the box on t
 others (the irregular grid's rule, Pérard-Gayot et al. 2017), so it never lands past
 a non-empty cell. On a grid without skip data it is the plain DDA.
 
-Counters (``with_stats``): ``steps`` cell steps and jumps, ``cells`` cells entered,
-``empty_cells`` empty ones, ``prim_tests`` triangle tests, ``mailbox_hits`` tests
-saved by the mailbox, ``vertical_steps`` mip-map levels climbed, ``bytes`` 8 per cell
-range and 40 per triangle and id read.
+A two-level grid (Kalojanov, Billeter, Slusallek 2011) is walked DDA in DDA by the same
+body: the top-level walk is the one above, and in a non-empty top cell a second DDA walks
+its sub-grid from the point where the ray entered the top cell (start leaf biased
+against the direction and clamped to the sub-grid) until it leaves the sub-grid or the
+closest hit lies before the leaf's exit (then the whole walk ends). The mailbox lives
+across both levels. With ``skip`` (``grid.skip``), an empty top cell with skip data is
+crossed in one jump as in the uniform grid (the thesis's proposal: empty-space skipping
+on the two-level grid).
+
+Counters (``with_stats``): ``steps`` cell steps and jumps (top and leaf), ``cells``
+cells entered (leaf cells and empty top cells of a two-level grid), ``empty_cells``
+empty ones, ``prim_tests`` triangle tests, ``mailbox_hits`` tests saved by the
+mailbox, ``vertical_steps`` mip-map levels climbed (descents into a sub-grid on a
+two-level grid), ``bytes`` 8 per cell range and 40 per triangle and id read.
 """
 
 from __future__ import annotations
@@ -42,10 +52,9 @@ import numpy as np
 
 from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
-from rayaccel.counters import Counter
 from rayaccel.errors import InvalidInputError
 from rayaccel.grid.layouts.irregular import IrregularGrid
-from rayaccel.grid.layouts.two_level import TwoLevelGrid
+from rayaccel.grid.layouts.two_level import TwoLevelGrid, TwoLevelTrace, two_level_trace_layout
 from rayaccel.grid.layouts.uniform import (
     SKIP_DISTANCE,
     SKIP_MACRO,
@@ -55,8 +64,19 @@ from rayaccel.grid.layouts.uniform import (
     trace_layout,
     with_mailbox,
 )
-from rayaccel.grid.traverse.walk import exit_plane, leave_box, make_mailbox, start_cell
-from rayaccel.kernels.triangle import ray_triangle
+from rayaccel.grid.traverse.walk import (
+    HIT_BEFORE_EXIT,
+    MOVED,
+    axis_steps,
+    distance_box,
+    enter_lattice,
+    exit_plane,
+    intersect_cell,
+    leave_box,
+    make_mailbox,
+    next_cell,
+    store_walk_counters,
+)
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
@@ -89,18 +109,20 @@ class DdaOptions:
 
 
 @functools.cache
-def trace_body(skip: bool) -> Any:
+def trace_body(skip: bool, two_level: bool) -> Any:
     """Return the per-ray body (``cpu_inline``) of the DDA, jumping over empty boxes if ``skip``.
 
     With ``skip`` the kind of skip data is read from the layout at run time (one compiled
-    variant serves the distance field, the macro regions and the mip-map).
+    variant serves the distance field, the macro regions and the mip-map). With
+    ``two_level`` the body walks a :class:`TwoLevelTrace`: DDA in DDA, a non-empty top
+    cell walked through its sub-grid (see the module docstring).
     """
 
     def trace_rays_py(
         grid, scratch, origin, direction, tmin, tmax, begin, end,
         hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
     ):  # fmt: skip
-        """Trace rays ``begin:end`` through ``grid`` (GridTrace); return 0 (no stack)."""
+        """Trace rays ``begin:end`` through ``grid`` (GridTrace or TwoLevelTrace); return 0."""
         _ = skip
         mailbox = scratch
         skip_kind = grid.skip_kind[0]
@@ -117,6 +139,9 @@ def trace_body(skip: bool) -> Any:
         sx = grid.size[0]
         sy = grid.size[1]
         sz = grid.size[2]
+        vx = grid.inv_size[0]
+        vy = grid.inv_size[1]
+        vz = grid.inv_size[2]
         for r in range(begin, end):
             n_steps = 0
             n_cells = 0
@@ -144,35 +169,34 @@ def trace_body(skip: bool) -> Any:
                     for m in range(n_mail):
                         mailbox[m] = -1
                     slot = 0
-                    cx = start_cell(ox + t_start * dx, lox, grid.inv_size[0], rx, dx)
-                    cy = start_cell(oy + t_start * dy, loy, grid.inv_size[1], ry, dy)
-                    cz = start_cell(oz + t_start * dz, loz, grid.inv_size[2], rz, dz)
-                    step_x = 1 if dx > 0 else (-1 if dx < 0 else 0)
-                    step_y = 1 if dy > 0 else (-1 if dy < 0 else 0)
-                    step_z = 1 if dz > 0 else (-1 if dz < 0 else 0)
-                    tnx = exit_plane(lox, sx, ox, ix, cx, step_x)
-                    tny = exit_plane(loy, sy, oy, iy, cy, step_y)
-                    tnz = exit_plane(loz, sz, oz, iz, cz, step_z)
+                    step_x, step_y, step_z = axis_steps(dx, dy, dz)
+                    cx, cy, cz, tnx, tny, tnz = enter_lattice(
+                        t_start, ox, oy, oz, dx, dy, dz, ix, iy, iz, step_x, step_y, step_z,
+                        lox, loy, loz, sx, sy, sz, vx, vy, vz, rx, ry, rz,
+                    )  # fmt: skip
+                    # Where the ray entered the current (top) cell.
+                    t_enter = t_start
                     while True:
                         cell = cx + rx * (cy + ry * cz)
                         first = cell_start[cell]
                         last = cell_start[cell + 1]
                         if with_stats:
                             n_steps += 1
-                            n_cells += 1
                             n_bytes += _CELL_BYTES
                             if first == last:
+                                n_cells += 1
                                 n_empty += 1
+                            elif two_level:
+                                n_vertical += 1
+                            else:
+                                n_cells += 1
                         if skip and first == last and skip_kind != SKIP_NONE:
                             # Empty cell: leave the empty box around it in one jump.
                             if skip_kind == SKIP_DISTANCE:
                                 k = np.int32(grid.skip[cell, 0]) - 1
-                                bx0 = max(cx - k, 0)
-                                by0 = max(cy - k, 0)
-                                bz0 = max(cz - k, 0)
-                                bx1 = min(cx + k, rx - 1)
-                                by1 = min(cy + k, ry - 1)
-                                bz1 = min(cz + k, rz - 1)
+                                bx0, by0, bz0, bx1, by1, bz1 = distance_box(
+                                    cx, cy, cz, k, rx, ry, rz
+                                )
                             elif skip_kind == SKIP_MACRO:
                                 bx0 = np.int32(grid.skip[cell, 0])
                                 by0 = np.int32(grid.skip[cell, 1])
@@ -194,7 +218,7 @@ def trace_body(skip: bool) -> Any:
                                 bx1 = min(bx0 + (1 << m) - 1, rx - 1)
                                 by1 = min(by0 + (1 << m) - 1, ry - 1)
                                 bz1 = min(bz0 + (1 << m) - 1, rz - 1)
-                            moved, _t, cx, cy, cz = leave_box(
+                            moved, t_enter, cx, cy, cz = leave_box(
                                 bx0, by0, bz0, bx1, by1, bz1, cx, cy, cz, step_x, step_y,
                                 step_z, grid.lo, grid.size, grid.inv_size, grid.res,
                                 ox, oy, oz, ix, iy, iz, dx, dy, dz, t_hit + pad,
@@ -205,79 +229,86 @@ def trace_body(skip: bool) -> Any:
                             tny = exit_plane(loy, sy, oy, iy, cy, step_y)
                             tnz = exit_plane(loz, sz, oz, iz, cz, step_z)
                             continue
-                        for i in range(first, last):
-                            p = tri_prim[i]
-                            seen = False
-                            for m in range(n_mail):
-                                if mailbox[m] == p:
-                                    seen = True
-                                    break
-                            if seen:
+                        if two_level and first != last:
+                            # Descend: a DDA over this top cell's sub-grid from t_enter.
+                            lrx = grid.sub_res[cell, 0]
+                            lry = grid.sub_res[cell, 1]
+                            lrz = grid.sub_res[cell, 2]
+                            lsx = grid.leaf_size[cell, 0]
+                            lsy = grid.leaf_size[cell, 1]
+                            lsz = grid.leaf_size[cell, 2]
+                            tlx = lox + np.float32(cx) * sx
+                            tly = loy + np.float32(cy) * sy
+                            tlz = loz + np.float32(cz) * sz
+                            base = grid.leaf_first[cell]
+                            jx, jy, jz, lnx, lny, lnz = enter_lattice(
+                                t_enter, ox, oy, oz, dx, dy, dz, ix, iy, iz, step_x, step_y,
+                                step_z, tlx, tly, tlz, lsx, lsy, lsz, grid.leaf_inv[cell, 0],
+                                grid.leaf_inv[cell, 1], grid.leaf_inv[cell, 2], lrx, lry, lrz,
+                            )  # fmt: skip
+                            state = MOVED
+                            while state == MOVED:
+                                leaf = base + jx + lrx * (jy + lry * jz)
+                                leaf_first = grid.leaf_start[leaf]
+                                leaf_last = grid.leaf_start[leaf + 1]
                                 if with_stats:
-                                    n_mailbox += 1
-                                continue
-                            if n_mail > 0:
-                                mailbox[slot] = p
-                                slot += 1
-                                if slot == n_mail:
-                                    slot = 0
-                            t, u, v = ray_triangle(
-                                tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit
-                            )
-                            if with_stats:
-                                n_prim += 1
-                                n_bytes += _PRIM_BYTES
-                            if t < t_hit:
-                                t_hit = t
-                                best_prim = p
-                                best_u = u
-                                best_v = v
-                                if query == QUERY_ANY:
+                                    n_steps += 1
+                                    n_cells += 1
+                                    n_bytes += _CELL_BYTES
+                                    if leaf_first == leaf_last:
+                                        n_empty += 1
+                                t_hit, best_prim, best_u, best_v, slot, n_prim, n_mailbox = (
+                                    intersect_cell(
+                                        tri, tri_prim, leaf_first, leaf_last, mailbox, n_mail,
+                                        slot, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo,
+                                        t_hit, best_prim, best_u, best_v, n_prim, n_mailbox,
+                                        query == QUERY_ANY,
+                                    )
+                                )  # fmt: skip
+                                if query == QUERY_ANY and best_prim >= 0:
+                                    state = HIT_BEFORE_EXIT
                                     break
-                        if query == QUERY_ANY and best_prim >= 0:
-                            break
+                                state, _t, jx, jy, jz, lnx, lny, lnz = next_cell(
+                                    jx, jy, jz, lnx, lny, lnz, step_x, step_y, step_z,
+                                    lrx, lry, lrz, tlx, tly, tlz, lsx, lsy, lsz,
+                                    ox, oy, oz, ix, iy, iz, t_hit + pad,
+                                )  # fmt: skip
+                            if state == HIT_BEFORE_EXIT:
+                                # The closest hit lies before this leaf's exit: done.
+                                break
+                        elif not two_level:
+                            t_hit, best_prim, best_u, best_v, slot, n_prim, n_mailbox = (
+                                intersect_cell(
+                                    tri, tri_prim, first, last, mailbox, n_mail, slot,
+                                    okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
+                                    best_prim, best_u, best_v, n_prim, n_mailbox,
+                                    query == QUERY_ANY,
+                                )
+                            )  # fmt: skip
+                            if query == QUERY_ANY and best_prim >= 0:
+                                break
                         # Step to the next cell unless every hit so far lies before it.
-                        if tnx <= tny and tnx <= tnz:
-                            if tnx >= t_hit + pad:
-                                break
-                            cx += step_x
-                            if cx < 0 or cx >= rx:
-                                break
-                            tnx = exit_plane(lox, sx, ox, ix, cx, step_x)
-                        elif tny <= tnz:
-                            if tny >= t_hit + pad:
-                                break
-                            cy += step_y
-                            if cy < 0 or cy >= ry:
-                                break
-                            tny = exit_plane(loy, sy, oy, iy, cy, step_y)
-                        else:
-                            if tnz >= t_hit + pad:
-                                break
-                            cz += step_z
-                            if cz < 0 or cz >= rz:
-                                break
-                            tnz = exit_plane(loz, sz, oz, iz, cz, step_z)
+                        state, t_enter, cx, cy, cz, tnx, tny, tnz = next_cell(
+                            cx, cy, cz, tnx, tny, tnz, step_x, step_y, step_z, rx, ry, rz,
+                            lox, loy, loz, sx, sy, sz, ox, oy, oz, ix, iy, iz, t_hit + pad,
+                        )  # fmt: skip
+                        if state != MOVED:
+                            break
             if with_stats:
-                counters[r, Counter.STEPS] = n_steps
-                counters[r, Counter.CELLS] = n_cells
-                counters[r, Counter.EMPTY_CELLS] = n_empty
-                counters[r, Counter.PRIM_TESTS] = n_prim
-                counters[r, Counter.MAILBOX_HITS] = n_mailbox
-                counters[r, Counter.VERTICAL_STEPS] = n_vertical
-                counters[r, Counter.BYTES] = n_bytes
+                store_walk_counters(
+                    counters, r, n_steps, n_cells, n_empty, n_prim, n_mailbox, n_vertical,
+                    n_bytes + _PRIM_BYTES * n_prim,
+                )  # fmt: skip
             store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
         return 0
 
     return cpu_inline(trace_rays_py)
 
 
-
-
 @functools.cache
-def kernels_for(skip: bool) -> Any:
-    """``kernel_for(query, with_stats, parallel)`` of the DDA, skipping empty boxes if ``skip``."""
-    return body_kernels(make_mailbox, trace_body(skip))
+def kernels_for(skip: bool, two_level: bool) -> Any:
+    """``kernel_for(query, with_stats, parallel)`` of the DDA (see :func:`trace_body`)."""
+    return body_kernels(make_mailbox, trace_body(skip, two_level))
 
 
 def grid_layout(
@@ -285,6 +316,16 @@ def grid_layout(
 ) -> GridTrace:
     """Return the traversal layout of ``grid`` (memoised in ``cache``) with its mailbox size."""
     layout = memoised_layout(cache, "grid.trace", lambda: trace_layout(grid, mesh.hit_rows(), 0))
+    return with_mailbox(layout, mailbox)
+
+
+def two_level_layout(
+    grid: TwoLevelGrid, mesh: TriangleMesh, cache: dict[str, Any] | None, mailbox: int
+) -> TwoLevelTrace:
+    """Return the two-level traversal layout (memoised in ``cache``) with its mailbox size."""
+    layout = memoised_layout(
+        cache, "grid.two_level_trace", lambda: two_level_trace_layout(grid, mesh.hit_rows())
+    )
     return with_mailbox(layout, mailbox)
 
 
@@ -304,12 +345,10 @@ def _trace(
 
         return trace_irregular(grid, mesh, rays, query, stats, opts.mailbox, cache)
     if isinstance(grid, TwoLevelGrid):
-        from rayaccel.grid.traverse import two_level  # (imports this module)
-
-        levels = two_level.two_level_layout(grid, mesh, cache, opts.mailbox)
-        return run_trace(two_level.kernels_for(skip), levels, rays, query, stats)
+        levels = two_level_layout(grid, mesh, cache, opts.mailbox)
+        return run_trace(kernels_for(skip, True), levels, rays, query, stats)
     layout = grid_layout(grid, mesh, cache, opts.mailbox)
-    return run_trace(kernels_for(skip), layout, rays, query, stats)
+    return run_trace(kernels_for(skip, False), layout, rays, query, stats)
 
 
 @register(

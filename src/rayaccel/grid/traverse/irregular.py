@@ -25,11 +25,17 @@ from typing import Any
 import numpy as np
 
 from rayaccel._jit import cpu_inline
-from rayaccel.counters import Counter
 from rayaccel.grid.layouts.irregular import IrregularGrid, IrregularTrace, trace_layout, voxel_cell
 from rayaccel.grid.layouts.uniform import with_mailbox
-from rayaccel.grid.traverse.walk import INF32, leave_box, make_mailbox, start_cell
-from rayaccel.kernels.triangle import ray_triangle
+from rayaccel.grid.traverse.walk import (
+    INF32,
+    axis_steps,
+    intersect_cell,
+    leave_box,
+    make_mailbox,
+    start_cell,
+    store_walk_counters,
+)
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
@@ -79,9 +85,7 @@ def trace_rays_py(
                 cx = np.int64(start_cell(ox + t_start * dx, lo[0], inv[0], res[0], dx))
                 cy = np.int64(start_cell(oy + t_start * dy, lo[1], inv[1], res[1], dy))
                 cz = np.int64(start_cell(oz + t_start * dz, lo[2], inv[2], res[2], dz))
-                step_x = 1 if dx > 0 else (-1 if dx < 0 else 0)
-                step_y = 1 if dy > 0 else (-1 if dy < 0 else 0)
-                step_z = 1 if dz > 0 else (-1 if dz < 0 else 0)
+                step_x, step_y, step_z = axis_steps(dx, dy, dz)
                 while True:
                     cell = voxel_cell(
                         cx, cy, cz, grid.top_res, shift, grid.log_dim, grid.leaf_first,
@@ -93,34 +97,11 @@ def trace_rays_py(
                         n_cells += 1
                         if first == last:
                             n_empty += 1
-                    for i in range(first, last):
-                        p = grid.tri_prim[i]
-                        seen = False
-                        for m in range(n_mail):
-                            if mailbox[m] == p:
-                                seen = True
-                                break
-                        if seen:
-                            if with_stats:
-                                n_mailbox += 1
-                            continue
-                        if n_mail > 0:
-                            mailbox[slot] = p
-                            slot += 1
-                            if slot == n_mail:
-                                slot = 0
-                        t, u, v = ray_triangle(
-                            grid.tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit
-                        )
-                        if with_stats:
-                            n_prim += 1
-                        if t < t_hit:
-                            t_hit = t
-                            best_prim = p
-                            best_u = u
-                            best_v = v
-                            if query == QUERY_ANY:
-                                break
+                    t_hit, best_prim, best_u, best_v, slot, n_prim, n_mailbox = intersect_cell(
+                        grid.tri, grid.tri_prim, first, last, mailbox, n_mail, slot,
+                        okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
+                        best_prim, best_u, best_v, n_prim, n_mailbox, query == QUERY_ANY,
+                    )  # fmt: skip
                     if query == QUERY_ANY and best_prim >= 0:
                         break
                     e_lo = grid.exit_lo
@@ -133,12 +114,11 @@ def trace_rays_py(
                     if not moved:
                         break
         if with_stats:
-            counters[r, Counter.STEPS] = n_cells
-            counters[r, Counter.CELLS] = n_cells
-            counters[r, Counter.EMPTY_CELLS] = n_empty
-            counters[r, Counter.PRIM_TESTS] = n_prim
-            counters[r, Counter.MAILBOX_HITS] = n_mailbox
-            counters[r, Counter.BYTES] = n_cells * _CELL_BYTES + n_prim * _PRIM_BYTES
+            # One step per cell; no vertical steps.
+            n_bytes = n_cells * _CELL_BYTES + n_prim * _PRIM_BYTES
+            store_walk_counters(
+                counters, r, n_cells, n_cells, n_empty, n_prim, n_mailbox, 0, n_bytes
+            )
         store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
     return 0
 

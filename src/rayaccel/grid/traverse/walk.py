@@ -1,6 +1,9 @@
 """The steps grid walks share: the start cell, a cell's exit plane, leaving a box of cells.
 
-Also the walks' per-worker scratch, the mailbox ring (:func:`make_mailbox`).
+Also the walks' per-worker scratch, the mailbox ring (:func:`make_mailbox`), the test of
+a cell's triangles through it (:func:`intersect_cell`), the 3D-DDA's entry into a
+lattice and its step to the next cell (:func:`enter_lattice`, :func:`next_cell`), and the
+store of a walk's counters (:func:`store_walk_counters`).
 
 Inline helpers (``rayaccel._jit.cpu_inline``) of the uniform, two-level and irregular
 grid traversals. A walk over a lattice of equal cells (the uniform grid, a top grid,
@@ -19,6 +22,8 @@ import math
 import numpy as np
 
 from rayaccel._jit import cpu_inline
+from rayaccel.counters import Counter
+from rayaccel.kernels.triangle import ray_triangle
 
 INF32 = np.float32(np.inf)
 #: The start cell is biased this fraction of a cell against the direction.
@@ -48,6 +53,94 @@ def exit_plane_py(lo, size, o, inv, cell, step):
 start_cell = cpu_inline(start_cell_py)
 exit_plane = cpu_inline(exit_plane_py)
 
+#: What :func:`next_cell` did: stepped into the next cell, stopped because the closest hit
+#: lies before the cell's exit (with the culling pad), or left the lattice.
+MOVED = 0
+HIT_BEFORE_EXIT = 1
+LEFT_LATTICE = 2
+
+
+def axis_steps_py(dx, dy, dz):
+    """Return the cell step of a direction on each axis: +1, -1, or 0 for a zero component."""
+    return (
+        1 if dx > 0 else (-1 if dx < 0 else 0),
+        1 if dy > 0 else (-1 if dy < 0 else 0),
+        1 if dz > 0 else (-1 if dz < 0 else 0),
+    )
+
+
+def enter_lattice_py(
+    t, ox, oy, oz, dx, dy, dz, ix, iy, iz, step_x, step_y, step_z,
+    lox, loy, loz, sx, sy, sz, vx, vy, vz, rx, ry, rz,
+):  # fmt: skip
+    """Return the cell of the ray's point at ``t`` and the distances to its exit planes.
+
+    The lattice starts at ``lo``, has cells of size ``s`` (reciprocals ``v``) and ``r``
+    cells per axis. Returns ``(cx, cy, cz, tnx, tny, tnz)`` (:func:`start_cell`,
+    :func:`exit_plane`).
+    """
+    cx = start_cell(ox + t * dx, lox, vx, rx, dx)
+    cy = start_cell(oy + t * dy, loy, vy, ry, dy)
+    cz = start_cell(oz + t * dz, loz, vz, rz, dz)
+    return (
+        cx, cy, cz,
+        exit_plane(lox, sx, ox, ix, cx, step_x),
+        exit_plane(loy, sy, oy, iy, cy, step_y),
+        exit_plane(loz, sz, oz, iz, cz, step_z),
+    )  # fmt: skip
+
+
+def next_cell_py(
+    cx, cy, cz, tnx, tny, tnz, step_x, step_y, step_z, rx, ry, rz,
+    lox, loy, loz, sx, sy, sz, ox, oy, oz, ix, iy, iz, t_stop,
+):  # fmt: skip
+    """Step the 3D-DDA on the axis of the nearest exit plane (ties: x, then y, then z).
+
+    Stops (:data:`HIT_BEFORE_EXIT`) instead when that exit lies at or beyond ``t_stop``
+    (the closest hit plus the culling pad): no later cell can hold a nearer hit. Returns
+    ``(state, t_exit, cx, cy, cz, tnx, tny, tnz)``: the state (:data:`MOVED`,
+    :data:`HIT_BEFORE_EXIT`, :data:`LEFT_LATTICE`), the distance at which the ray left
+    the cell, the new cell and its exit distances (lattice as :func:`enter_lattice`).
+    """
+    if tnx <= tny and tnx <= tnz:
+        if tnx >= t_stop:
+            return HIT_BEFORE_EXIT, tnx, cx, cy, cz, tnx, tny, tnz
+        cx += step_x
+        if cx < 0 or cx >= rx:
+            return LEFT_LATTICE, tnx, cx, cy, cz, tnx, tny, tnz
+        return MOVED, tnx, cx, cy, cz, exit_plane(lox, sx, ox, ix, cx, step_x), tny, tnz
+    if tny <= tnz:
+        if tny >= t_stop:
+            return HIT_BEFORE_EXIT, tny, cx, cy, cz, tnx, tny, tnz
+        cy += step_y
+        if cy < 0 or cy >= ry:
+            return LEFT_LATTICE, tny, cx, cy, cz, tnx, tny, tnz
+        return MOVED, tny, cx, cy, cz, tnx, exit_plane(loy, sy, oy, iy, cy, step_y), tnz
+    if tnz >= t_stop:
+        return HIT_BEFORE_EXIT, tnz, cx, cy, cz, tnx, tny, tnz
+    cz += step_z
+    if cz < 0 or cz >= rz:
+        return LEFT_LATTICE, tnz, cx, cy, cz, tnx, tny, tnz
+    return MOVED, tnz, cx, cy, cz, tnx, tny, exit_plane(loz, sz, oz, iz, cz, step_z)
+
+
+def distance_box_py(cx, cy, cz, k, rx, ry, rz):
+    """Return the box of cells ``(bx0, by0, bz0, bx1, by1, bz1)`` within ``k`` of cell ``c``.
+
+    The empty cube around an empty cell whose distance-field value is ``k + 1``,
+    clipped to the ``r``-cell grid.
+    """
+    return (
+        max(cx - k, 0), max(cy - k, 0), max(cz - k, 0),
+        min(cx + k, rx - 1), min(cy + k, ry - 1), min(cz + k, rz - 1),
+    )  # fmt: skip
+
+
+axis_steps = cpu_inline(axis_steps_py)
+enter_lattice = cpu_inline(enter_lattice_py)
+next_cell = cpu_inline(next_cell_py)
+distance_box = cpu_inline(distance_box_py)
+
 
 def make_mailbox_py(grid):
     """Return one worker's mailbox ring (at least one slot, so the type is fixed).
@@ -58,6 +151,65 @@ def make_mailbox_py(grid):
 
 
 make_mailbox = cpu_inline(make_mailbox_py)
+
+
+def intersect_cell_py(
+    tri, tri_prim, first, last, mailbox, n_mail, slot, okx, oky, okz, kx, ky, kz,
+    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, n_tested, n_skipped, stop_at_first,
+):  # fmt: skip
+    """Test a cell's triangles ``first:last``, skipping ids in the ring mailbox.
+
+    Each tested id enters the ring at ``slot`` (``n_mail`` entries; none when 0): a
+    triangle spans several cells, and testing it again could not change the hit, since
+    the hit interval only shrinks. Otherwise as
+    :func:`rayaccel.trace.leaf.intersect_leaf`. Returns ``(t_hit, prim, u, v, slot,
+    n_tested, n_skipped)``, the last two the ray's running counts of triangles tested
+    and of tests the mailbox saved (unused counts compile away).
+    """
+    for i in range(first, last):
+        p = tri_prim[i]
+        seen = False
+        for m in range(n_mail):
+            if mailbox[m] == p:
+                seen = True
+                break
+        if seen:
+            n_skipped += 1
+            continue
+        if n_mail > 0:
+            mailbox[slot] = p
+            slot += 1
+            if slot == n_mail:
+                slot = 0
+        t, u, v = ray_triangle(tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit)
+        n_tested += 1
+        if t < t_hit:
+            t_hit = t
+            best_prim = p
+            best_u = u
+            best_v = v
+            if stop_at_first:
+                break
+    return t_hit, best_prim, best_u, best_v, slot, n_tested, n_skipped
+
+
+intersect_cell = cpu_inline(intersect_cell_py)
+
+
+def store_walk_counters_py(
+    counters, r, steps, cells, empty, prims, mailbox_hits, vertical, n_bytes
+):
+    """Store a grid walk's counters of ray ``r`` (every grid traversal counts the same ones)."""
+    counters[r, Counter.STEPS] = steps
+    counters[r, Counter.CELLS] = cells
+    counters[r, Counter.EMPTY_CELLS] = empty
+    counters[r, Counter.PRIM_TESTS] = prims
+    counters[r, Counter.MAILBOX_HITS] = mailbox_hits
+    counters[r, Counter.VERTICAL_STEPS] = vertical
+    counters[r, Counter.BYTES] = n_bytes
+
+
+store_walk_counters = cpu_inline(store_walk_counters_py)
 
 
 def toward_py(new, old, step):
