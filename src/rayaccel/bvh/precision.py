@@ -28,8 +28,9 @@ parents, since widening is monotone too.
 
 Cost: one refit pass (O(n), parallel) at build time; the boxes grow by one float32 ulp,
 which changes the SAH cost negligibly. kd-trees and grids place split planes and cell
-boundaries between float32 triangles and cannot be widened this way; :func:`rayaccel.build`
-refuses them for float64 meshes.
+boundaries between float32 triangles and cannot be widened this way: a kd-tree lists each
+float64 triangle in every leaf it touches instead (:mod:`rayaccel.kdtree.precision`), and
+a grid's cell margins already cover the float64 triangles (:mod:`rayaccel.grid.precision`).
 """
 
 from __future__ import annotations

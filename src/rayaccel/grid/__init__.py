@@ -10,5 +10,6 @@ Chapters: :mod:`~rayaccel.grid.layouts` (the canonical ``grid`` structure and th
 traversal layout), :mod:`~rayaccel.grid.builders` (``grid.uniform`` and the skipping
 variants ``grid.distance``, ``grid.macro_regions``, ``grid.mipmap``; ``grid.two_level``
 and ``grid.irregular``) and
-:mod:`~rayaccel.grid.traverse` (``grid.dda``, ``grid.skip``).
+:mod:`~rayaccel.grid.traverse` (``grid.dda``, ``grid.skip``). Float64 meshes:
+:mod:`~rayaccel.grid.precision` (why the cell margins already hold them).
 """

@@ -14,4 +14,6 @@ leaf cell it overlaps (Havran 2000; Wald & Havran 2006). The chapters:
 - :mod:`rayaccel.kdtree.traverse` — ``kdtree.stack`` (front to back with a stack),
   ``kdtree.restart`` and ``kdtree.backtrack`` (Foley & Sugerman 2005),
   ``kdtree.short_stack`` (Horn et al. 2007) and ``kdtree.ropes`` (Popov et al. 2007).
+- :mod:`rayaccel.kdtree.precision` — float64 meshes: the tree's leaves list every float64
+  triangle they touch.
 """
