@@ -129,6 +129,26 @@ def test_refit_reports_degradation_and_rebuilds_when_worse(sphere):
     accel.validate()
 
 
+def test_refit_reuses_the_known_sah_of_the_tree_it_refits(sphere, monkeypatch):
+    """After a refit or rebuild the tree's SAH is known (its ``sah_after``): the next refit
+    reports it as ``sah_before`` without another pass, and it equals a fresh pass."""
+    accel = rayaccel.build(sphere, "bvh2.binned_sah", max_leaf_size=2)
+    passes = []
+    original = rayaccel.refit.sah_cost
+    monkeypatch.setattr(rayaccel.refit, "sah_cost",
+                        lambda structure: passes.append(1) or original(structure))  # fmt: skip
+    last = accel.refit(wave(sphere, 1))
+    assert len(passes) == 1  # the built tree's cost: not known before the first refit
+    for frame, ratio in ((2, None), (3, 1.0001), (4, None)):
+        before = sah_of(accel.structure)
+        report = accel.refit(wave(sphere, frame), rebuild_if_worse=ratio)
+        assert report["sah_before"] == before == last["sah_after"]
+        assert report["method"] == ("rebuild" if frame == 3 else "refit")
+        last = report
+    # One more pass, for the tree the rebuild made (frame 3): never for a known tree.
+    assert len(passes) == 2
+
+
 def test_rebuild_keeps_builder_steps_and_options(sphere):
     options = {"max_leaf_size": 2, "reinsert": {"max_iterations": 2}}
     accel = rayaccel.build(sphere, "bvh2.lbvh+reinsert", **options)

@@ -612,6 +612,7 @@ class Accel:
             rebuild_if_worse=rebuild_if_worse,
             rebuild=rebuild,
             structure_name=self.structure_name,
+            sah_now=None if self.last_refit is None else self.last_refit["sah_after"],
         )
         with self._lock:
             outcome.report["dropped"] = sorted(k for k in self._cache if k != LAYOUT_MS)

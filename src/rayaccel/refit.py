@@ -133,6 +133,7 @@ def refit_structure(
     rebuild_if_worse: object,
     rebuild: Rebuild,
     structure_name: str,
+    sah_now: float | None = None,
 ) -> RefitOutcome:
     """Refit ``structure`` to ``new_vertices``, or rebuild it (see the module docstring).
 
@@ -154,6 +155,9 @@ def refit_structure(
         steps and options.
     structure_name : str
         The structure's registry name, for the report.
+    sah_now : float, optional
+        SAH cost of ``structure`` as it is, when known (the last refit's
+        ``sah_after``); otherwise computed (one pass over the nodes).
 
     Returns
     -------
@@ -167,7 +171,7 @@ def refit_structure(
     limit = check_ratio(rebuild_if_worse)
     new_mesh = refitted_mesh(mesh, new_vertices)
     start = time.perf_counter()
-    sah_before = sah_cost(structure)
+    sah_before = sah_now if sah_now is not None else sah_cost(structure)
     if build_sah is None:
         build_sah = sah_before
     report: dict[str, Any] = {
