@@ -113,4 +113,6 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     """
     x, y, z = axis
     cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
+    rotation: np.ndarray = np.eye(3) + math.sin(angle) * cross
+    rotation += (1.0 - math.cos(angle)) * (cross @ cross)
+    return rotation
