@@ -212,6 +212,25 @@ def prefetch_row(typingctx: Any, array: Any, row: Any) -> Any:
     return sig, codegen
 
 
+def _atomic_rmw(operation: str, ordering: str) -> Callable[..., Any]:
+    """Return the codegen of ``atomicrmw operation`` on ``array[index]``, returning the old value.
+
+    For intrinsics typed ``(array, index, value)``: a 1D array and an index in range (no
+    wraparound).
+    """
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        array_type = signature.args[0]
+        view = context.make_array(array_type)(context, builder, args[0])
+        position = context.cast(builder, args[1], signature.args[1], types.intp)
+        pointer = cgutils.get_item_pointer(
+            context, builder, array_type, view, [position], wraparound=False
+        )
+        return builder.atomic_rmw(operation, pointer, args[2], ordering)
+
+    return codegen
+
+
 @intrinsic
 def atomic_exchange(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
     """Store ``value`` in ``array[index]`` atomically and return the previous value.
@@ -221,18 +240,7 @@ def atomic_exchange(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
     which is what bottom-up builders need to read the box a sibling's thread wrote.
     ``array`` is a 1D integer array and ``index`` must be in range (no wraparound).
     """
-    sig = array.dtype(array, index, array.dtype)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        array_type = signature.args[0]
-        view = context.make_array(array_type)(context, builder, args[0])
-        position = context.cast(builder, args[1], signature.args[1], types.intp)
-        pointer = cgutils.get_item_pointer(
-            context, builder, array_type, view, [position], wraparound=False
-        )
-        return builder.atomic_rmw("xchg", pointer, args[2], "seq_cst")
-
-    return sig, codegen
+    return array.dtype(array, index, array.dtype), _atomic_rmw("xchg", "seq_cst")
 
 
 @intrinsic
@@ -243,18 +251,7 @@ def atomic_fetch_add(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
     hands out work items (:mod:`rayaccel._work`). ``array`` is a 1D integer array and
     ``index`` must be in range.
     """
-    sig = array.dtype(array, index, array.dtype)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        array_type = signature.args[0]
-        view = context.make_array(array_type)(context, builder, args[0])
-        position = context.cast(builder, args[1], signature.args[1], types.intp)
-        pointer = cgutils.get_item_pointer(
-            context, builder, array_type, view, [position], wraparound=False
-        )
-        return builder.atomic_rmw("add", pointer, args[2], "monotonic")
-
-    return sig, codegen
+    return array.dtype(array, index, array.dtype), _atomic_rmw("add", "monotonic")
 
 
 @intrinsic

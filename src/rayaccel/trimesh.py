@@ -360,27 +360,29 @@ class RayMeshIntersector:
         self, ray_origins: npt.ArrayLike, ray_directions: npt.ArrayLike
     ) -> I64Array:
         """Return ``(n,)`` int64: the first triangle each ray hits, -1 for a miss."""
-        origins, directions = _as_rays(ray_origins, ray_directions)
-        first = np.full(origins.shape[0], -1, dtype=np.int64)
-        built = self._current()
-        if built.accel is not None:
-            for part in _parts(origins.shape[0]):
-                rays = _frame(built, origins[part], directions[part])
-                first[part] = _trace(built, rays.batch, "closest").prim
+        first: I64Array = self._per_ray(ray_origins, ray_directions, "closest", "prim", -1)
         return first
 
     def intersects_any(
         self, ray_origins: npt.ArrayLike, ray_directions: npt.ArrayLike
     ) -> BoolArray:
         """Return ``(n,)`` bool: whether each ray hits the surface at all."""
+        hit: BoolArray = self._per_ray(ray_origins, ray_directions, "any", "hit", False)
+        return hit
+
+    def _per_ray(
+        self, ray_origins: npt.ArrayLike, ray_directions: npt.ArrayLike, query: str,
+        field: str, miss: Any,
+    ) -> np.ndarray:  # fmt: skip
+        """Trace the rays in parts; return each one's ``field`` of its hits (``miss``: none)."""
         origins, directions = _as_rays(ray_origins, ray_directions)
-        hit = np.zeros(origins.shape[0], dtype=bool)
+        out = np.full(origins.shape[0], miss)
         built = self._current()
         if built.accel is not None:
             for part in _parts(origins.shape[0]):
                 rays = _frame(built, origins[part], directions[part])
-                hit[part] = _trace(built, rays.batch, "any").hit
-        return hit
+                out[part] = getattr(_trace(built, rays.batch, query), field)
+        return out
 
     def contains_points(self, points: npt.ArrayLike) -> BoolArray:
         """Return ``(n,)`` bool: whether each point is inside the mesh (ray parity).

@@ -120,37 +120,25 @@ def _signature(box: Any, columns: tuple[Any, ...], scalars: tuple[Any, ...], out
     return types.int32(box, *columns, *([real] * 8), out)
 
 
-@intrinsic
-def slab_test2(
-    typingctx: Any, box: Any, row: Any, near_x: Any, far_x: Any, near_y: Any, far_y: Any,
-    near_z: Any, far_z: Any, ox: Any, oy: Any, oz: Any, ix: Any, iy: Any, iz: Any,
-    t_lo: Any, t_hi: Any, out: Any,
-) -> Any:  # fmt: skip
-    """Two slab tests in ``<2 x float>`` vectors (see the module docstring)."""
-    columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
-    scalars = (ox, oy, oz, ix, iy, iz, t_lo, t_hi)
-    return _signature(box, columns, scalars, out), _slab_codegen(2)
+def _slab_test(lanes: int, count: str) -> Any:
+    """Return the intrinsic of ``lanes`` slab tests in ``<lanes x float>`` vectors."""
+
+    def slab_test(
+        typingctx: Any, box: Any, row: Any, near_x: Any, far_x: Any, near_y: Any, far_y: Any,
+        near_z: Any, far_z: Any, ox: Any, oy: Any, oz: Any, ix: Any, iy: Any, iz: Any,
+        t_lo: Any, t_hi: Any, out: Any,
+    ) -> Any:  # fmt: skip
+        columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
+        scalars = (ox, oy, oz, ix, iy, iz, t_lo, t_hi)
+        return _signature(box, columns, scalars, out), _slab_codegen(lanes)
+
+    slab_test.__name__ = slab_test.__qualname__ = f"slab_test{lanes}"
+    slab_test.__doc__ = (
+        f"{count} slab tests in ``<{lanes} x float>`` vectors (see the module docstring)."
+    )
+    return intrinsic(slab_test)
 
 
-@intrinsic
-def slab_test4(
-    typingctx: Any, box: Any, row: Any, near_x: Any, far_x: Any, near_y: Any, far_y: Any,
-    near_z: Any, far_z: Any, ox: Any, oy: Any, oz: Any, ix: Any, iy: Any, iz: Any,
-    t_lo: Any, t_hi: Any, out: Any,
-) -> Any:  # fmt: skip
-    """Four slab tests in ``<4 x float>`` vectors (see the module docstring)."""
-    columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
-    scalars = (ox, oy, oz, ix, iy, iz, t_lo, t_hi)
-    return _signature(box, columns, scalars, out), _slab_codegen(4)
-
-
-@intrinsic
-def slab_test8(
-    typingctx: Any, box: Any, row: Any, near_x: Any, far_x: Any, near_y: Any, far_y: Any,
-    near_z: Any, far_z: Any, ox: Any, oy: Any, oz: Any, ix: Any, iy: Any, iz: Any,
-    t_lo: Any, t_hi: Any, out: Any,
-) -> Any:  # fmt: skip
-    """Eight slab tests in ``<8 x float>`` vectors (see the module docstring)."""
-    columns = (row, near_x, far_x, near_y, far_y, near_z, far_z)
-    scalars = (ox, oy, oz, ix, iy, iz, t_lo, t_hi)
-    return _signature(box, columns, scalars, out), _slab_codegen(8)
+slab_test2 = _slab_test(2, "Two")
+slab_test4 = _slab_test(4, "Four")
+slab_test8 = _slab_test(8, "Eight")

@@ -1,4 +1,9 @@
-"""What every kd traversal shares: the memoised trace layout and the split-plane step."""
+"""What every kd traversal shares: the memoised trace layout and the split-plane step.
+
+The step at an inner node (:func:`split_segments`): the split plane's distance, the near
+and far child, whether the ray's segment ``[tn, tf]`` reaches each, and each child's
+part of it.
+"""
 
 from __future__ import annotations
 
@@ -57,5 +62,27 @@ def descend_py(node_f, node_i, node, tn, tf, ox, oy, oz, ix, iy, iz, side_mask, 
     return node, tf, in_plane, n_nodes
 
 
+def split_segments_py(bits, split, tn, tf, pad, ox, oy, oz, ix, iy, iz):
+    """Return the children of the inner node ``bits`` and the segment each one needs.
+
+    Returns ``(near, far, near_needed, far_needed, near_tf, far_tn)``: the near child
+    holds ``[tn, near_tf]`` and is needed unless the split lies before ``tn - pad``, the
+    far child holds ``[far_tn, tf]`` and is needed unless the split lies beyond ``tf +
+    pad`` (the culling pad). A ray in the split plane (NaN distance) needs both, each
+    for the whole segment.
+    """
+    child = bits >> 2
+    ts, inv = split_distance(bits & 3, split, ox, oy, oz, ix, iy, iz)
+    near = child if inv >= 0 else child + 1
+    near_tf = ts + pad
+    if not (near_tf < tf):
+        near_tf = tf
+    far_tn = ts - pad
+    if not (far_tn > tn):
+        far_tn = tn
+    return near, 2 * child + 1 - near, not (ts < tn - pad), not (ts > tf + pad), near_tf, far_tn
+
+
 split_distance = cpu_inline(split_distance_py)
 descend = cpu_inline(descend_py)
+split_segments = cpu_inline(split_segments_py)

@@ -44,7 +44,7 @@ from rayaccel.kdtree.layouts.kdtree import (
     TRIANGLE_BYTES,
     KdTree,
 )
-from rayaccel.kdtree.traverse.common import kd_trace_layout, split_distance
+from rayaccel.kdtree.traverse.common import kd_trace_layout, split_segments
 from rayaccel.kernels.aabb import ray_box_exit
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -139,20 +139,10 @@ def _body(order: int) -> Any:
                     bits = node_i[node, 1]
                     axis = bits & 3
                     if axis != 3:
-                        child = bits >> 2
                         split = node_f[node, 0]
-                        ts, inv = split_distance(axis, split, ox, oy, oz, ix, iy, iz)
-                        near = child if inv >= 0 else child + 1
-                        far = 2 * child + 1 - near
-                        near_needed = not (ts < tn - pad)
-                        far_needed = not (ts > tf + pad)
-                        # Segments of the two children (NaN: the whole segment).
-                        near_tf = ts + pad
-                        if not (near_tf < tf):
-                            near_tf = tf
-                        far_tn = ts - pad
-                        if not (far_tn > tn):
-                            far_tn = tn
+                        near, far, near_needed, far_needed, near_tf, far_tn = split_segments(
+                            bits, split, tn, tf, pad, ox, oy, oz, ix, iy, iz
+                        )
                         if near_needed and far_needed:
                             if sp == STACK_SIZE:
                                 overflowed = 1
@@ -169,7 +159,7 @@ def _body(order: int) -> Any:
                                 else:
                                     o_a = oz
                                 # The child holding the origin first (a tie: by direction).
-                                if near == child:
+                                if near < far:
                                     first_far = o_a > split
                                 else:
                                     first_far = o_a < split

@@ -64,7 +64,7 @@ from rayaccel.kdtree.layouts.kdtree import (
     TRIANGLE_BYTES,
     KdTraceLayout,
 )
-from rayaccel.kdtree.traverse.common import descend, split_distance
+from rayaccel.kdtree.traverse.common import descend, split_segments
 from rayaccel.kernels.aabb import ray_box_exit
 from rayaccel.queries import QUERY_ANY
 from rayaccel.trace.leaf import intersect_leaf
@@ -246,18 +246,9 @@ def window_walk_py(
             axis = bits & 3
             if axis == 3:
                 break
-            child = bits >> 2
-            ts, inv = split_distance(axis, node_f[node, 0], ox, oy, oz, ix, iy, iz)
-            near = child if inv >= 0 else child + 1
-            far = 2 * child + 1 - near
-            near_needed = not (ts < tn - pad)
-            far_needed = not (ts > tf + pad)
-            near_tf = ts + pad
-            if not (near_tf < tf):
-                near_tf = tf
-            far_tn = ts - pad
-            if not (far_tn > tn):
-                far_tn = tn
+            near, far, near_needed, far_needed, near_tf, far_tn = split_segments(
+                bits, node_f[node, 0], tn, tf, pad, ox, oy, oz, ix, iy, iz
+            )
             if near_needed and far_needed:
                 if (trail >> level) & 1:
                     node = far
@@ -517,18 +508,9 @@ def _body(method: int) -> Any:
                             axis = bits & 3
                             if axis == 3:
                                 break
-                            child = bits >> 2
-                            ts, inv = split_distance(axis, node_f[node, 0], ox, oy, oz, ix, iy, iz)
-                            near = child if inv >= 0 else child + 1
-                            far = 2 * child + 1 - near
-                            near_needed = not (ts < tn - pad)
-                            far_needed = not (ts > tf + pad)
-                            near_tf = ts + pad
-                            if not (near_tf < tf):
-                                near_tf = tf
-                            far_tn = ts - pad
-                            if not (far_tn > tn):
-                                far_tn = tn
+                            near, far, near_needed, far_needed, near_tf, far_tn = split_segments(
+                                bits, node_f[node, 0], tn, tf, pad, ox, oy, oz, ix, iy, iz
+                            )
                             if near_needed and far_needed:
                                 if method == METHOD_SHORT_STACK and not push_set:
                                     # The push-down root: the first node with two children.
