@@ -50,7 +50,7 @@ from rayaccel._jit import cpu_kernel
 from rayaccel.errors import StructureInvariantError
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import UniformGrid
-from rayaccel.kdtree.precision import float64_triangles, touches
+from rayaccel.kernels.overlap import touches
 from rayaccel.scene.mesh import TriangleMesh
 
 #: Grid builders that refuse float64 meshes, and why.
@@ -112,7 +112,7 @@ def check_conservative(grid: UniformGrid | TwoLevelGrid, mesh: TriangleMesh) -> 
     listed in each (top) cell whose plain box its float64 version touches.
     """
     top = grid.top if isinstance(grid, TwoLevelGrid) else grid
-    tri = float64_triangles(mesh)
+    tri = mesh.triangles64()
     corners = tri.reshape(-1, 3)
     if (corners < top.lo).any() or (corners > top.hi).any():
         raise StructureInvariantError("grid: a float64 triangle sticks out of the grid box")

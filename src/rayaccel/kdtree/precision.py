@@ -11,9 +11,10 @@ the tree's planes and adds references (the same structure, a few more entries):
    argument of :mod:`rayaccel.bvh.precision` (rounding to nearest is monotone) every
    float64 corner, hence every float64 triangle, lies inside it.
 2. Every triangle is added to each leaf whose closed cell, grown by ``g = 2^-30`` of the
-   scene's magnitude on every side, its float64 triangle touches (:func:`touches`,
-   float64 arithmetic), unless the leaf lists it already. The builder's lists are kept
-   as they are, in their order, the additions after them.
+   scene's magnitude on every side, its float64 triangle touches
+   (:func:`rayaccel.kernels.overlap.touches`, float64 arithmetic), unless the leaf lists
+   it already. The builder's lists are kept as they are, in their order, the additions
+   after them.
 
 Why this suffices. Every kd traversal keeps a hit found beyond the current leaf and
 skips a later leaf only when it begins (within the culling pad) beyond the closest hit
@@ -28,9 +29,9 @@ pad), and ``T`` touches ``C``, so (2.) lists it there. The growth ``g`` covers t
 float64 rounding of the touch test: its projections err by a few float64 ulps of the
 coordinates (``2^-50`` of the magnitude), ``g`` is ``2^20`` times that, so a triangle
 touching ``C`` is never found apart from it; a triangle within ``g`` of ``C`` is listed
-too, which costs a test, never a hit. :func:`touches` omits the separating-axis test's
-plane axis, whose float64 rounding is not bounded by ``g`` for slivers (its normal is
-a rounded cross product); fewer axes only list more.
+too, which costs a test, never a hit. :func:`~rayaccel.kernels.overlap.touches` omits
+the separating-axis test's plane axis, whose float64 rounding is not bounded by ``g``
+for slivers (its normal is a rounded cross product); fewer axes only list more.
 
 The traversal stacks keep segment ends in float32 (:mod:`rayaccel.kdtree.traverse.stack`):
 rounding one moves it by at most ``2^-24`` of its distance, while the culling pad is
@@ -47,73 +48,17 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel._jit import cpu_kernel
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import StructureInvariantError
 from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, MAX_DEPTH, KdTree
+from rayaccel.kernels.overlap import touches
 from rayaccel.scene.mesh import TriangleMesh
 
 #: Cells grow by this fraction of the scene's magnitude when listing float64 triangles.
 GROW = 2.0**-30
 
 
-def touches_py(tri, p, lo, hi):
-    """Return whether triangle ``p`` may touch the closed box ``[lo, hi]`` (float64).
-
-    The separating axis test of :mod:`rayaccel.kernels.overlap` on the box faces and the
-    nine box-axis × edge axes, without the triangle's plane (see the module docstring):
-    a superset of the exact answer, never a subset beyond float64 rounding.
-    """
-    cx = 0.5 * (lo[0] + hi[0])
-    cy = 0.5 * (lo[1] + hi[1])
-    cz = 0.5 * (lo[2] + hi[2])
-    hx = 0.5 * (hi[0] - lo[0])
-    hy = 0.5 * (hi[1] - lo[1])
-    hz = 0.5 * (hi[2] - lo[2])
-    v0x = tri[p, 0, 0] - cx
-    v0y = tri[p, 0, 1] - cy
-    v0z = tri[p, 0, 2] - cz
-    v1x = tri[p, 1, 0] - cx
-    v1y = tri[p, 1, 1] - cy
-    v1z = tri[p, 1, 2] - cz
-    v2x = tri[p, 2, 0] - cx
-    v2y = tri[p, 2, 1] - cy
-    v2z = tri[p, 2, 2] - cz
-    if min(v0x, v1x, v2x) > hx or max(v0x, v1x, v2x) < -hx:
-        return False
-    if min(v0y, v1y, v2y) > hy or max(v0y, v1y, v2y) < -hy:
-        return False
-    if min(v0z, v1z, v2z) > hz or max(v0z, v1z, v2z) < -hz:
-        return False
-    for e in range(3):
-        if e == 0:
-            ex, ey, ez = v1x - v0x, v1y - v0y, v1z - v0z
-        elif e == 1:
-            ex, ey, ez = v2x - v1x, v2y - v1y, v2z - v1z
-        else:
-            ex, ey, ez = v0x - v2x, v0y - v2y, v0z - v2z
-        p0 = ey * v0z - ez * v0y
-        p1 = ey * v1z - ez * v1y
-        p2 = ey * v2z - ez * v2y
-        r = hy * abs(ez) + hz * abs(ey)
-        if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
-            return False
-        p0 = ez * v0x - ex * v0z
-        p1 = ez * v1x - ex * v1z
-        p2 = ez * v2x - ex * v2z
-        r = hx * abs(ez) + hz * abs(ex)
-        if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
-            return False
-        p0 = ex * v0y - ey * v0x
-        p1 = ex * v1y - ey * v1x
-        p2 = ex * v2y - ey * v2x
-        r = hx * abs(ey) + hy * abs(ex)
-        if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
-            return False
-    return True
-
-
-touches = cpu_inline(touches_py)
 
 
 @cpu_kernel(parallel=True)
@@ -174,13 +119,6 @@ def _leaf_pairs(tri, node_split, node_bits, lo, hi, grow, counts, offsets, out_l
             counts[p] = n
 
 
-def float64_triangles(mesh: TriangleMesh) -> np.ndarray:
-    """Return the ``(F, 3, 3)`` float64 corners of a float64 mesh's triangles."""
-    if mesh.vertices64 is None:
-        raise StructureInvariantError(f"{mesh.name}: not a float64 mesh")
-    return np.ascontiguousarray(mesh.vertices64[mesh.faces], dtype=np.float64)
-
-
 def _touched_pairs(kd: KdTree, tri: np.ndarray, grow: float) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(leaf, prim)`` int64 arrays: every leaf each triangle touches (cells grown)."""
     n = tri.shape[0]
@@ -239,7 +177,7 @@ def conservative_kdtree(kd: KdTree, mesh: TriangleMesh) -> KdTree:
     hi = np.nextafter(kd.hi, np.float32(np.inf)).astype(REAL)
     wide = KdTree(kd.nodes, kd.leaf_first, kd.leaf_count, kd.prim_index, lo, hi, kd.n_prims,
                   kd.perfect_splits)  # fmt: skip
-    tri = float64_triangles(mesh)
+    tri = mesh.triangles64()
     old_leaf, old_prim = _listed_pairs(wide)
     new_leaf, new_prim = _touched_pairs(wide, tri, _grow(wide))
     n_prims = max(kd.n_prims, 1)
@@ -268,7 +206,7 @@ def check_conservative(kd: KdTree, mesh: TriangleMesh) -> None:
     Checks that every float64 corner lies in the scene box and that every triangle is
     listed in each leaf whose closed cell (not grown) its float64 version touches.
     """
-    tri = float64_triangles(mesh)
+    tri = mesh.triangles64()
     corners = tri.reshape(-1, 3)
     if (corners < kd.lo).any() or (corners > kd.hi).any():
         raise StructureInvariantError("kdtree: a float64 triangle sticks out of the scene box")

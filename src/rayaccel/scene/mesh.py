@@ -169,6 +169,18 @@ class TriangleMesh:
         """Return the ``(F, 3, 3)`` float32 corner positions of every triangle."""
         return np.ascontiguousarray(self.vertices[self.faces])
 
+    def triangles64(self) -> npt.NDArray[np.float64]:
+        """Return the ``(F, 3, 3)`` float64 corners of a float64 mesh's triangles.
+
+        Raises
+        ------
+        InvalidInputError
+            The mesh is float32 (it keeps no float64 positions).
+        """
+        if self.vertices64 is None:
+            raise InvalidInputError(f"{self.name}: not a float64 mesh")
+        return np.ascontiguousarray(self.vertices64[self.faces], dtype=np.float64)
+
     def hit_rows(self) -> RealArray:
         """Return the ``(F, 9)`` corner rows the intersection kernels test.
 
