@@ -62,8 +62,8 @@ def cases():
             mesh = rayaccel.scenes.get(scene)
             accel = rayaccel.build(mesh, builder)
             rays = reference.mixed_rays(mesh)
-            closest = accel.trace(rays, stats=True)
-            any_hit = accel.trace(rays, query="any", stats=True)
+            closest = accel.trace(rays, traversal="bvh2.stack", stats=True)
+            any_hit = accel.trace(rays, query="any", traversal="bvh2.stack", stats=True)
             out[builder, scene] = (accel, rays, closest, any_hit)
     return out
 
@@ -196,7 +196,7 @@ def test_degenerate_rays_miss_and_terminate(traversal):
     d = np.array([[0, 0, 0], [np.nan, 1, 0], [np.inf, 0, 0], [0, -0.0, 1], [1, 0, 0]], np.float32)
     o[4] = np.nan
     hits = accel.intersect(o, d, traversal=traversal, stats=True)
-    ref = accel.intersect(o, d, stats=True)
+    ref = accel.intersect(o, d, traversal="bvh2.stack", stats=True)
     reference.assert_hits_identical(ref, hits, traversal)
     assert not hits.hit[[0, 1, 2, 4]].any()
     assert all((hits.stats[k][[0, 1, 2, 4]] == 0).all() for k in hits.stats)

@@ -134,7 +134,7 @@ def test_same_closest_t_and_occlusion_as_the_stack_traversal(width):
     for scene in ("soup", "cornell-box", "teapot-in-stadium"):
         accel = rayaccel.build(rayaccel.scenes.get(scene), "bvh2.lbvh")
         rays = reference.mixed_rays(accel.mesh, n=900)
-        ref = accel.trace(rays, stats=True)
+        ref = accel.trace(rays, traversal="bvh2.stack", stats=True)
         hits = accel.trace(rays, traversal="bvh2.wide", stats=True, width=width)
         assert hits.t.tobytes() == ref.t.tobytes(), scene
         ties = np.flatnonzero(hits.prim != ref.prim)
@@ -143,8 +143,15 @@ def test_same_closest_t_and_occlusion_as_the_stack_traversal(width):
         occluded = accel.occluded(
             rays.origin, rays.direction, rays.tmin, rays.tmax, traversal="bvh2.wide", width=width
         )
+        lanes = accel.occluded(
+            rays.origin, rays.direction, rays.tmin, rays.tmax, traversal="bvh2.wide",
+            width=width, any_order="lanes",
+        )  # fmt: skip
+        assert np.array_equal(lanes, occluded), scene
         assert np.array_equal(
-            occluded, accel.occluded(rays.origin, rays.direction, rays.tmin, rays.tmax)
+            occluded,
+            accel.occluded(rays.origin, rays.direction, rays.tmin, rays.tmax,
+                           traversal="bvh2.stack"),
         ), scene
         # Half the steps of the binary traversal or fewer, more box tests per step.
         visited = ref.stats["nodes"] > 0
@@ -162,6 +169,11 @@ def test_counters_bytes_and_options():
     assert eight["bytes"].sum() > 0
     with pytest.raises(InvalidInputError, match="width"):
         accel.intersect(rays.origin, rays.direction, traversal="bvh2.wide", width=6)
+    with pytest.raises(InvalidInputError, match="any_order"):
+        accel.occluded(rays.origin, rays.direction, traversal="bvh2.wide", any_order="far")
+    # The lane order changes only any-hit queries: closest hits keep the nearest-first walk.
+    lanes = accel.trace(rays, traversal="bvh2.wide", stats=True, any_order="lanes").stats
+    assert all(np.array_equal(lanes[k], eight[k]) for k in eight)
     assert (s["steps"] == s["nodes"]).all()
     assert (s["box_tests"] >= s["nodes"]).all()
     assert (s["box_tests"][s["nodes"] > 1] > 2 * s["nodes"][s["nodes"] > 1] - 2).all()
@@ -193,7 +205,7 @@ def test_deep_chain_and_identical_triangles():
     accel = rayaccel.build(
         rayaccel.TriangleMesh(tri, np.arange(3 * n).reshape(n, 3)), max_leaf_size=1
     )
-    ref = accel.intersect(o, d)
+    ref = accel.intersect(o, d, traversal="bvh2.stack")
     for width in WIDTHS:
         hits = accel.intersect(o, d, traversal="bvh2.wide", width=width)
         assert hits.t.tobytes() == ref.t.tobytes()

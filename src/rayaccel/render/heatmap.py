@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from rayaccel import registry
 from rayaccel._atomic import write_bytes_atomic
 from rayaccel.api import Accel
 from rayaccel.counters import COUNTER_NAMES
@@ -312,7 +313,9 @@ def trace_counters(
     metric : str
         Counter name (``rayaccel.COUNTER_NAMES``).
     traversal : str, optional
-        Traversal registry key; default: the structure's default traversal.
+        Traversal registry key; default: the structure's default (reference) traversal,
+        e.g. ``bvh2.stack``, whose counters the study reports (not the fastest one that
+        queries naming no traversal use).
     query : {"closest", "any"}
         Closest-hit or any-hit rays.
 
@@ -321,7 +324,8 @@ def trace_counters(
     (camera.height, camera.width) float64 ndarray
     """
     check_metric(metric)
-    hits = accel.trace(camera.rays(), query=query, traversal=traversal, stats=True)
+    key = traversal or registry.default_traversal(accel.structure_name)
+    hits = accel.trace(camera.rays(), query=query, traversal=key, stats=True)
     return counter_image(hits.stats, metric, camera.shape)
 
 

@@ -78,22 +78,38 @@ class WideOptions:
     width : {4, 8}
         Children per wide row: 8 (AVX-sized vectors, 256-byte rows; the faster on every
         scene measured) or 4 (SSE-sized, 128-byte rows).
+    any_order : {"nearest", "lanes"}
+        The order an any-hit query visits a row's hit children in: ``"nearest"`` as
+        closest-hit queries do (the others pushed sorted by entry distance), or
+        ``"lanes"``, the row's order, unsorted (an occluder anywhere on the segment ends
+        the walk, so the sort buys nothing certain; Embree's any-hit traversal does not
+        sort either). Closest-hit queries always visit nearest first.
     """
 
     width: int = 8
+    any_order: str = "nearest"
 
     def __post_init__(self) -> None:
         if self.width not in WIDTHS:
             raise InvalidInputError(f"width: expected one of {WIDTHS}, got {self.width}")
+        if self.any_order not in ANY_ORDERS:
+            raise InvalidInputError(
+                f"any_order: expected one of {ANY_ORDERS}, got {self.any_order!r}"
+            )
+
+
+#: The orders ``bvh2.wide`` may visit a row's hit children in for any-hit queries.
+ANY_ORDERS = ("nearest", "lanes")
 
 
 @functools.cache
-def wide_body(width: int) -> tuple[Any, Any]:
+def wide_body(width: int, any_order: str) -> tuple[Any, Any]:
     """Return the ``(make_scratch, trace_rays)`` inline pair of the ``width``-wide traversal.
 
-    ``width`` and the columns and sizes it fixes are compile-time constants of the body
-    (:mod:`rayaccel.trace.skeleton`).
+    ``width``, the columns and sizes it fixes, and ``any_order`` (:class:`WideOptions`)
+    are compile-time constants of the body (:mod:`rayaccel.trace.skeleton`).
     """
+    any_in_lanes = any_order == "lanes"
     ref_col = ref_column(width)
     count_col = count_column(width)
     row_bytes = 4 * row_floats(width)
@@ -199,7 +215,9 @@ def wide_body(width: int) -> tuple[Any, Any]:
                                 mask &= mask - 1
                                 child = refs[node, ref_col + j]
                                 tj = lane_t[j]
-                                if tj < next_t:
+                                if query == QUERY_ANY and any_in_lanes:
+                                    k = sp  # pushed as they come, unsorted
+                                elif tj < next_t:
                                     keep_branch()
                                     child, next_node = next_node, child
                                     tj, next_t = next_t, tj
@@ -271,9 +289,9 @@ def wide_body(width: int) -> tuple[Any, Any]:
 
 
 @functools.cache
-def wide_kernels(width: int) -> Any:
+def wide_kernels(width: int, any_order: str) -> Any:
     """Return ``kernel_for(query, with_stats, parallel)``: the compiled ``width``-wide variants."""
-    return body_kernels(*wide_body(width))
+    return body_kernels(*wide_body(width, any_order))
 
 
 def wide_bvh(
@@ -307,6 +325,6 @@ def trace_bvh2_wide(
 
     The derived wide rows are cached under ``"bvh2.wide4"`` or ``"bvh2.wide8"``.
     """
-    width = (options or WideOptions()).width
-    wide = wide_bvh(bvh, mesh, cache, width)
-    return run_trace(wide_kernels(width), wide.arrays(), rays, query, stats)
+    opt = options or WideOptions()
+    wide = wide_bvh(bvh, mesh, cache, opt.width)
+    return run_trace(wide_kernels(opt.width, opt.any_order), wide.arrays(), rays, query, stats)
