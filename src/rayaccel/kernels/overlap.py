@@ -39,22 +39,11 @@ import numpy as np
 from rayaccel._jit import cpu_inline
 
 
-def triangle_box_overlap_py(tri, prim, lo, hi):
-    """Return whether triangle ``prim`` and the closed box ``[lo, hi]`` share a point.
+def separating_axes_py(tri, prim, lo, hi, plane_axis):
+    """Return False when one of the separating axes parts triangle ``prim`` and ``[lo, hi]``.
 
-    Parameters
-    ----------
-    tri : (F, 3, 3) float32 ndarray
-        Triangle corners.
-    prim : int
-        Row of ``tri`` to test.
-    lo, hi : (3,) float32 ndarray
-        Box corners, ``lo <= hi`` (equal on an axis for a flat box).
-
-    Returns
-    -------
-    bool
-        True when they overlap or touch (see the module docstring).
+    The 12 axes of the box faces and box axis × triangle edge, and the triangle's normal
+    when ``plane_axis`` (a compile-time constant where it is inlined).
     """
     # Box centre and half extents; the triangle moved so the box is centred at 0.
     cx = 0.5 * (np.float64(lo[0]) + hi[0])
@@ -114,6 +103,8 @@ def triangle_box_overlap_py(tri, prim, lo, hi):
         r = hx * abs(ey) + hy * abs(ex)
         if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
             return False
+    if not plane_axis:
+        return True
     # Axis 13: the triangle's normal; the plane n·x = n·v0 against the box's radius.
     e0x = v1x - v0x
     e0y = v1y - v0y
@@ -129,6 +120,29 @@ def triangle_box_overlap_py(tri, prim, lo, hi):
     return not abs(d) > r
 
 
+separating_axes = cpu_inline(separating_axes_py)
+
+
+def triangle_box_overlap_py(tri, prim, lo, hi):
+    """Return whether triangle ``prim`` and the closed box ``[lo, hi]`` share a point.
+
+    Parameters
+    ----------
+    tri : (F, 3, 3) float32 ndarray
+        Triangle corners.
+    prim : int
+        Row of ``tri`` to test.
+    lo, hi : (3,) float32 ndarray
+        Box corners, ``lo <= hi`` (equal on an axis for a flat box).
+
+    Returns
+    -------
+    bool
+        True when they overlap or touch (see the module docstring).
+    """
+    return separating_axes(tri, prim, lo, hi, True)
+
+
 triangle_box_overlap = cpu_inline(triangle_box_overlap_py)
 
 
@@ -141,53 +155,7 @@ def touches_py(tri, p, lo, hi):
     beyond float64 rounding. Float64 meshes in float32 kd-trees and grids list their
     triangles by it (:mod:`rayaccel.kdtree.precision`, :mod:`rayaccel.grid.precision`).
     """
-    cx = 0.5 * (lo[0] + hi[0])
-    cy = 0.5 * (lo[1] + hi[1])
-    cz = 0.5 * (lo[2] + hi[2])
-    hx = 0.5 * (hi[0] - lo[0])
-    hy = 0.5 * (hi[1] - lo[1])
-    hz = 0.5 * (hi[2] - lo[2])
-    v0x = tri[p, 0, 0] - cx
-    v0y = tri[p, 0, 1] - cy
-    v0z = tri[p, 0, 2] - cz
-    v1x = tri[p, 1, 0] - cx
-    v1y = tri[p, 1, 1] - cy
-    v1z = tri[p, 1, 2] - cz
-    v2x = tri[p, 2, 0] - cx
-    v2y = tri[p, 2, 1] - cy
-    v2z = tri[p, 2, 2] - cz
-    if min(v0x, v1x, v2x) > hx or max(v0x, v1x, v2x) < -hx:
-        return False
-    if min(v0y, v1y, v2y) > hy or max(v0y, v1y, v2y) < -hy:
-        return False
-    if min(v0z, v1z, v2z) > hz or max(v0z, v1z, v2z) < -hz:
-        return False
-    for e in range(3):
-        if e == 0:
-            ex, ey, ez = v1x - v0x, v1y - v0y, v1z - v0z
-        elif e == 1:
-            ex, ey, ez = v2x - v1x, v2y - v1y, v2z - v1z
-        else:
-            ex, ey, ez = v0x - v2x, v0y - v2y, v0z - v2z
-        p0 = ey * v0z - ez * v0y
-        p1 = ey * v1z - ez * v1y
-        p2 = ey * v2z - ez * v2y
-        r = hy * abs(ez) + hz * abs(ey)
-        if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
-            return False
-        p0 = ez * v0x - ex * v0z
-        p1 = ez * v1x - ex * v1z
-        p2 = ez * v2x - ex * v2z
-        r = hx * abs(ez) + hz * abs(ex)
-        if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
-            return False
-        p0 = ex * v0y - ey * v0x
-        p1 = ex * v1y - ey * v1x
-        p2 = ex * v2y - ey * v2x
-        r = hx * abs(ey) + hy * abs(ex)
-        if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
-            return False
-    return True
+    return separating_axes(tri, p, lo, hi, False)
 
 
 touches = cpu_inline(touches_py)
