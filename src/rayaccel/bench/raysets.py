@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from rayaccel import api
+from rayaccel import api, registry
 from rayaccel.errors import InvalidInputError
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.rays.bounce import diffuse_rays, shadow_rays
@@ -132,9 +132,14 @@ def scene_light(
     up /= np.linalg.norm(up)
     start = np.asarray(camera.eye, dtype=np.float64) if preset is not None else 0.5 * (lo + hi)
     height = float(np.abs(up) @ (hi - lo)) or 1.0
-    probe = accel.intersect(start[None, :], up[None, :])
+    probe = accel.intersect(start[None, :], up[None, :], traversal=_reference(accel))
     distance = 0.8 * float(probe.t[0]) if probe.hit[0] else 0.4 * height
     return start + distance * up
+
+
+def _reference(accel: api.Accel) -> str:
+    """Return the structure's reference traversal, which the bench compiles before any scene."""
+    return registry.default_traversal(accel.structure_name)
 
 
 def standard_raysets(
@@ -184,7 +189,7 @@ def standard_raysets(
     if kinds == ["primary"]:
         return sets
     accel = accel or api.build(mesh)
-    hits: HitBatch = accel.trace(primary)
+    hits: HitBatch = accel.trace(primary, traversal=_reference(accel))
     normals = mesh.normals()
     if "diffuse" in kinds:
         rays, _ = diffuse_rays(primary, hits, normals, seed=seed)
