@@ -168,9 +168,10 @@ def dipole_tree(bvh: Bvh2, tri: np.ndarray, cache: dict[str, Any] | None) -> Dip
             np.zeros((n, 3), dtype=np.float64),
             np.zeros(n, dtype=np.float64),
         )
+        # Float64 corners for every mesh (float32 ones widened): one compiled signature.
         _dipole_kernel(
-            bvh.node_lo, bvh.node_hi, bvh.node_first, bvh.node_count, bvh.prim_index, tri,
-            out.normal, out.centre, out.radius,
+            bvh.node_lo, bvh.node_hi, bvh.node_first, bvh.node_count, bvh.prim_index,
+            np.ascontiguousarray(tri, dtype=np.float64), out.normal, out.centre, out.radius,
         )  # fmt: skip
         return out
 
