@@ -511,7 +511,6 @@ class Accel:
             ``epo`` or ``lcv_rays`` asked of a structure without quality metrics.
         """
         s: Structure = self.structure
-        derived_bytes = sum(int(v.nbytes()) for v in self._cache.values() if hasattr(v, "nbytes"))
         info: dict[str, Any] = {
             "builder": self.key,
             "structure": self.structure_name,
@@ -542,13 +541,14 @@ class Accel:
                 prim_cost=prim_cost,
             )
             info.update(quality)
-        info["bytes"] = int(s.nbytes()) + derived_bytes
         layout_ms = self._cache.get(LAYOUT_MS, {})
-        info["layouts"] = {
+        layouts = {
             name: {"bytes": int(v.nbytes()), "build_ms": round(layout_ms.get(name, 0.0), 3)}
             for name, v in self._cache.items()
             if hasattr(v, "nbytes")
         }
+        info["bytes"] = int(s.nbytes()) + sum(entry["bytes"] for entry in layouts.values())
+        info["layouts"] = layouts
         if self.last_refit is not None:
             info["refit"] = dict(self.last_refit)
         info["options"] = {
