@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -27,6 +28,18 @@ import numpy.typing as npt
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray, check_precision
 from rayaccel.errors import InvalidInputError
 from rayaccel.validation import NORMAL_FLOOR, check_coordinates, reject_masked
+
+
+def _rows_of_three(name: str, value: object, rows: str, kind: str) -> npt.NDArray[Any]:
+    """Return ``value`` as an array of shape ``(rows, 3)`` (``rows``, ``kind``: for errors)."""
+    reject_masked(name, value)
+    try:
+        array = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name}: expected a ({rows}, 3) {kind} array, got {exc}") from exc
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidInputError(f"{name}: expected shape ({rows}, 3), got {array.shape}")
+    return array
 
 
 def _coerce_vertices(
@@ -38,13 +51,7 @@ def _coerce_vertices(
     (:data:`rayaccel.validation.COORDINATE_LIMIT`); a float64 mesh's range lies within
     float32's, so its float32 rounding (what builders bound) is finite too.
     """
-    reject_masked("vertices", vertices)
-    try:
-        array = np.asarray(vertices)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"vertices: expected a (V, 3) float array, got {exc}") from exc
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise InvalidInputError(f"vertices: expected shape (V, 3), got {array.shape}")
+    array = _rows_of_three("vertices", vertices, "V", "float")
     if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
         raise InvalidInputError(f"vertices: expected a float array, got dtype {array.dtype}")
     finite = np.isfinite(array)
@@ -66,13 +73,7 @@ def _coerce_vertices(
 
 
 def _coerce_faces(faces: object, n_vertices: int) -> IntArray:
-    reject_masked("faces", faces)
-    try:
-        array = np.asarray(faces)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"faces: expected a (F, 3) int array, got {exc}") from exc
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise InvalidInputError(f"faces: expected shape (F, 3), got {array.shape}")
+    array = _rows_of_three("faces", faces, "F", "int")
     if array.shape[0] == 0:
         raise InvalidInputError("faces: the mesh is empty (0 triangles)")
     if np.issubdtype(array.dtype, np.floating):

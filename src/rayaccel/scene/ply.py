@@ -44,6 +44,7 @@ from rayaccel.scene.polygons import (
     check_polygons,
     check_vertices,
     fan_triangulate,
+    first_corner,
 )
 
 _TYPES = {
@@ -513,14 +514,20 @@ class _AsciiBody:
         pos = starts.copy()
         where: dict[str, I64Array] = {}
         length: dict[str, I64Array] = {}
+
+        def refuse(row: int, detail: str) -> SceneFileError:
+            """Return the error naming row ``row`` and its line; ``detail`` follows."""
+            return SceneFileError(
+                f"{self.source}: line {int(numbers[row])}: row {row} of element "
+                f"{element.name!r}{detail}"
+            )
+
         for prop in element.properties:
             short = pos >= ends
             if short.any():
                 row = int(np.flatnonzero(short)[0])
-                raise SceneFileError(
-                    f"{self.source}: line {int(numbers[row])}: row {row} of element "
-                    f"{element.name!r} has {int(widths[row])} values; property "
-                    f"{prop.name!r} is missing"
+                raise refuse(
+                    row, f" has {int(widths[row])} values; property {prop.name!r} is missing"
                 )
             where[prop.name] = pos.copy()
             if not prop.is_list:
@@ -531,10 +538,10 @@ class _AsciiBody:
             bad |= count > (ends - pos - 1)
             if bad.any():
                 row = int(np.flatnonzero(bad)[0])
-                raise SceneFileError(
-                    f"{self.source}: line {int(numbers[row])}: row {row} of element "
-                    f"{element.name!r}: list {prop.name!r} declares {flat[pos[row]]:g} values "
-                    f"but {int(ends[row] - pos[row] - 1)} follow"
+                raise refuse(
+                    row,
+                    f": list {prop.name!r} declares {flat[pos[row]]:g} values "
+                    f"but {int(ends[row] - pos[row] - 1)} follow",
                 )
             counts = count.astype(np.int64)
             length[prop.name] = counts
@@ -542,11 +549,7 @@ class _AsciiBody:
         extra = pos != ends
         if extra.any():
             row = int(np.flatnonzero(extra)[0])
-            raise SceneFileError(
-                f"{self.source}: line {int(numbers[row])}: row {row} of element "
-                f"{element.name!r} has {int(ends[row] - pos[row])} values more than its "
-                "properties"
-            )
+            raise refuse(row, f" has {int(ends[row] - pos[row])} values more than its properties")
         result.where, result.length = where, length
         return result
 
@@ -602,8 +605,7 @@ class _AsciiBody:
         values = flat[np.repeat(rows.where[prop.name] + 1, counts) + _ramp(counts)]
         bad = ~np.isfinite(values) | (values != np.floor(values)) | (np.abs(values) >= 2.0**62)
         if bad.any():
-            corner = int(np.flatnonzero(bad)[0])
-            row = int(np.searchsorted(np.cumsum(counts), corner, side="right"))
+            corner, row = first_corner(bad, counts)
             raise SceneFileError(
                 f"{self.source}: line {int(self.element_lines[rows.element][row])}: face {row} has "
                 f"vertex index {values[corner]:g}, not an integer"

@@ -106,12 +106,21 @@ def check_polygons(
         )
     bad = (index < 0) | (index >= n_vertices)
     if bad.any():
-        corner = int(np.flatnonzero(bad)[0])
-        row = int(np.searchsorted(np.cumsum(counts), corner, side="right"))
+        corner, row = first_corner(bad, counts)
         raise SceneFileError(
             f"{source}: face {row} has vertex index {int(index[corner])} out of range "
             f"[0, {n_vertices}) ({n_vertices} vertices){_at(where, row)}"
         )
+
+
+def first_corner(bad: npt.NDArray[np.bool_], counts: I64Array) -> tuple[int, int]:
+    """Return ``(corner, polygon)``: the first corner where ``bad`` holds, and its polygon.
+
+    ``bad`` has one entry per corner, polygon after polygon; ``counts`` gives each
+    polygon's corners. At least one corner must be bad.
+    """
+    corner = int(np.flatnonzero(bad)[0])
+    return corner, int(np.searchsorted(np.cumsum(counts), corner, side="right"))
 
 
 def fan_triangulate(counts: I64Array, index: I64Array) -> I64Array:
@@ -139,4 +148,4 @@ def fan_triangulate(counts: I64Array, index: I64Array) -> I64Array:
     return np.stack([index[base], index[base + k + 1], index[base + k + 2]], axis=1)
 
 
-__all__ = ["check_polygons", "check_vertices", "fan_triangulate"]
+__all__ = ["check_polygons", "check_vertices", "fan_triangulate", "first_corner"]
