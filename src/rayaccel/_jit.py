@@ -274,27 +274,42 @@ def keep_branch(typingctx: Any) -> Any:
     return sig, codegen
 
 
+def _next_up(width: int) -> Callable[..., Any]:
+    """Return the codegen of ``np.nextafter(x, inf)`` for a float of ``width`` bits (32, 64).
+
+    The bits of the float read as a signed int of the same width step to the next
+    float up: +1 for a positive value, -1 for a negative one; ±0 steps to the smallest
+    subnormal, while NaN and +inf stay themselves.
+    """
+    as_int = ir.IntType(width)
+    as_float = ir.FloatType() if width == 32 else ir.DoubleType()
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        value = args[0]
+        bits = builder.bitcast(value, as_int)
+        positive = builder.icmp_signed(">=", bits, as_int(0))
+        stepped = builder.select(
+            positive, builder.add(bits, as_int(1)), builder.sub(bits, as_int(1))
+        )
+        is_zero = builder.fcmp_ordered("==", value, as_float(0.0))
+        stepped = builder.bitcast(builder.select(is_zero, as_int(1), stepped), as_float)
+        is_nan = builder.fcmp_unordered("uno", value, value)
+        is_inf = builder.fcmp_ordered("==", value, as_float(float("inf")))
+        return builder.select(builder.or_(is_nan, is_inf), value, stepped)
+
+    return codegen
+
+
 @intrinsic
 def next_up_float32(typingctx: Any, x: Any) -> Any:
     """``np.nextafter(x, inf)`` for a float32, inline (numba calls a C function for it).
 
-    The bits of a float32 read as an int32 step to the next float up: +1 for a
-    positive value, -1 for a negative one; ±0 steps to the smallest subnormal, while
-    NaN and +inf stay themselves.
+    The bit trick of :func:`_next_up` on the float32's bits read as an int32.
     """
-    sig = types.float32(types.float32)
+    return types.float32(types.float32), _next_up(32)
 
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        value = args[0]
-        i32 = ir.IntType(32)
-        f32 = ir.FloatType()
-        bits = builder.bitcast(value, i32)
-        positive = builder.icmp_signed(">=", bits, i32(0))
-        stepped = builder.select(positive, builder.add(bits, i32(1)), builder.sub(bits, i32(1)))
-        is_zero = builder.fcmp_ordered("==", value, f32(0.0))
-        stepped = builder.bitcast(builder.select(is_zero, i32(1), stepped), f32)
-        is_nan = builder.fcmp_unordered("uno", value, value)
-        is_inf = builder.fcmp_ordered("==", value, f32(float("inf")))
-        return builder.select(builder.or_(is_nan, is_inf), value, stepped)
 
-    return sig, codegen
+@intrinsic
+def next_up_float64(typingctx: Any, x: Any) -> Any:
+    """``np.nextafter(x, inf)`` for a float64, inline: the bit trick of :func:`next_up_float32`."""
+    return types.float64(types.float64), _next_up(64)
