@@ -31,7 +31,7 @@ import os
 import sys
 import traceback
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -99,24 +99,29 @@ def _threads(text: str) -> list[int]:
     return counts
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
+def _int_at_least(minimum: int, expected: str) -> Callable[[str], int]:
+    """Return an argparse ``type`` parsing an int ``>= minimum`` (``expected`` names it)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {value}")
+        return value
+
+    return parse
 
 
-def _nonnegative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
-    return value
+_positive_int = _int_at_least(1, "a positive integer")
+_nonnegative_int = _int_at_least(0, "an integer >= 0")
+
+
+def _add_image_size(p: argparse.ArgumentParser) -> None:
+    """Add ``--width`` and ``--height``, the pixels of the camera's image (render, bench)."""
+    for name in ("--width", "--height"):
+        p.add_argument(name, type=_positive_int, default=512)
 
 
 def default_builder() -> str:
@@ -658,8 +663,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scale-max", type=float, help="heatmap value mapped to white")
     p.add_argument("--scale-min", type=float, help="heatmap value mapped to black")
     p.add_argument("--linear", action="store_true", help="linear instead of log heatmap scale")
-    p.add_argument("--width", type=_positive_int, default=512)
-    p.add_argument("--height", type=_positive_int, default=512)
+    _add_image_size(p)
     p.add_argument(
         "--ao",
         type=_nonnegative_int,
@@ -709,8 +713,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=_positive_int, default=5, help="timed passes (default 5)")
     p.add_argument("--build-repeats", type=_positive_int, default=3,
                    help="timed builds (default 3)")  # fmt: skip
-    p.add_argument("--width", type=_positive_int, default=512)
-    p.add_argument("--height", type=_positive_int, default=512)
+    _add_image_size(p)
     p.add_argument(
         "--validate",
         type=_nonnegative_int,
