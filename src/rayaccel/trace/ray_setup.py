@@ -32,6 +32,8 @@ from rayaccel.kernels.real import next_up
 from rayaccel.kernels.triangle import ray_triangle_setup
 
 ONE32 = np.float32(1.0)
+ZERO32 = np.float32(0.0)
+INF32 = np.float32(np.inf)
 
 
 def ray_prologue_py(origin, direction, tmin, tmax, r, root_box):
@@ -98,5 +100,37 @@ def root_entry_py(root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, lo, 
     )  # fmt: skip
 
 
+def ray_start_py(origin, direction, tmin, tmax, r, root_box):
+    """Return ray ``r``'s constants, culling interval, root entry and empty hit.
+
+    Returns
+    -------
+    tuple
+        The 25 values of :func:`ray_prologue_py`, then ``(box_lo, box_hi, entry,
+        best_prim, best_u, best_v)``: boxes are culled against the slightly widened
+        interval ``[t_lo - pad, t_hit + pad]`` (aabb.py); ``entry`` is where the ray
+        enters ``root_box`` within it (:func:`root_entry_py`, the one root box test of
+        a traversal), inf for a miss or a degenerate ray; and the hit so far is none
+        (``-1, 0, 0``).
+    """
+    (
+        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+    ) = ray_prologue(origin, direction, tmin, tmax, r, root_box)  # fmt: skip
+    box_lo = t_lo - pad
+    box_hi = t_hit + pad
+    # Tested whatever the ray, then masked: a branch around the test would keep
+    # ``root_box`` referenced across it, a reference count update per ray.
+    entry = root_entry(root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, box_lo, box_hi)
+    if not valid:
+        entry = INF32
+    return (
+        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+        box_lo, box_hi, entry, -1, ZERO32, ZERO32,
+    )  # fmt: skip
+
+
 ray_prologue = cpu_inline(ray_prologue_py)
 root_entry = cpu_inline(root_entry_py)
+ray_start = cpu_inline(ray_start_py)

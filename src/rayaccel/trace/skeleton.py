@@ -17,7 +17,8 @@ A traversal module supplies two inline functions (``rayaccel._jit.cpu_inline``):
     of rays that overflowed): its per-ray body inside ``for r in range(begin, end):``,
     ending each ray with
     :func:`store_hit`; with ``with_stats`` it stores the ray's counters in
-    ``counters[r]`` (``Counter`` columns).
+    ``counters[r]`` (``Counter`` columns, with :func:`store_counts` and
+    :func:`store_backtracks`).
 
 Both are inlined into the kernel at numba IR level, so the compiled code is the code
 of a hand-written loop. ``with_stats`` reaches the body as a compile-time constant,
@@ -42,6 +43,7 @@ from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._work import new_counter, next_item, worker_count
+from rayaccel.counters import Counter
 
 #: Rays per work item: enough to amortise taking an item, few enough to balance threads.
 RAY_CHUNK = 64
@@ -148,3 +150,41 @@ def store_hit_py(hit_t, hit_prim, hit_u, hit_v, r, t, prim, u, v):
 
 
 store_hit = cpu_inline(store_hit_py)
+
+
+def no_scratch_py(layout):
+    """Return a worker's scratch for a body that needs none (its per-ray state is scalars)."""
+    return 0
+
+
+no_scratch = cpu_inline(no_scratch_py)
+
+
+def store_counts_py(counters, r, steps, nodes, box_tests, prim_tests, stack_peak, n_bytes):
+    """Store the counters every traversal fills in ``counters[r]`` (0 for one it has not)."""
+    counters[r, Counter.STEPS] = steps
+    counters[r, Counter.NODES] = nodes
+    counters[r, Counter.BOX_TESTS] = box_tests
+    counters[r, Counter.PRIM_TESTS] = prim_tests
+    counters[r, Counter.STACK_PEAK] = stack_peak
+    counters[r, Counter.BYTES] = n_bytes
+
+
+store_counts = cpu_inline(store_counts_py)
+
+
+def store_backtracks_py(counters, r, restarts, backtracks, hash_lookups, targets):
+    """Store a stackless traversal's counters in ``counters[r]`` (0 for one it has not).
+
+    ``targets`` is the histogram of backtracking targets, in the order of its columns:
+    how many went to the sibling (0 levels up), the uncle (1), the grand-uncle (2) and
+    further up.
+    """
+    counters[r, Counter.RESTARTS] = restarts
+    counters[r, Counter.BACKTRACKS] = backtracks
+    counters[r, Counter.HASH_LOOKUPS] = hash_lookups
+    for k in range(4):
+        counters[r, Counter.BACKTRACK_SIBLING + k] = targets[k]
+
+
+store_backtracks = cpu_inline(store_backtracks_py)

@@ -53,7 +53,7 @@ from rayaccel.dtypes import FloatArray, Int64Array, IntArray
 from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.rays.batch import RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import PARALLEL_MIN_RAYS
 from rayaccel.trace.skeleton import RAY_CHUNK
 
@@ -61,12 +61,12 @@ from rayaccel.trace.skeleton import RAY_CHUNK
 INSERTION_SORT_MAX = 24
 
 
-def hit_less_py(t, prim, i, j):
+def hit_before_py(t, prim, i, j):
     """Whether hit ``i`` sorts before hit ``j``: by ``t``, then primitive id."""
     return t[i] < t[j] or (t[i] == t[j] and prim[i] < prim[j])
 
 
-hit_less = cpu_inline(hit_less_py)
+hit_before = cpu_inline(hit_before_py)
 
 
 def swap_hits_py(t, prim, u, v, i, j):
@@ -80,17 +80,16 @@ def swap_hits_py(t, prim, u, v, i, j):
 swap_hits = cpu_inline(swap_hits_py)
 
 
-def sift_down_py(t, prim, u, v, start, end):
-    """Restore the max-heap property of ``[0, end)`` below ``start`` (heapsort)."""
-    root = start
+def sift_down_py(t, prim, u, v, base, root, end):
+    """Restore the max-heap below ``root`` of the heap ``base + [0, end)`` (heapsort)."""
     while True:
         child = 2 * root + 1
         if child >= end:
             return
-        if child + 1 < end and hit_less(t, prim, child, child + 1):
+        if child + 1 < end and hit_before(t, prim, base + child, base + child + 1):
             child += 1
-        if hit_less(t, prim, root, child):
-            swap_hits(t, prim, u, v, root, child)
+        if hit_before(t, prim, base + root, base + child):
+            swap_hits(t, prim, u, v, base + root, base + child)
             root = child
         else:
             return
@@ -99,20 +98,25 @@ def sift_down_py(t, prim, u, v, start, end):
 sift_down = cpu_inline(sift_down_py)
 
 
-def sort_hits_py(t, prim, u, v, n):
-    """Sort the first ``n`` hits of the buffers by ``t`` then primitive id, in place."""
+def sort_hits_py(t, prim, u, v, begin, end):
+    """Sort hits ``begin:end`` of the buffers by ``t`` then primitive id, in place.
+
+    Insertion sort for the usual few hits (up to :data:`INSERTION_SORT_MAX`), heapsort
+    beyond. Also the sort of :mod:`rayaccel.bvh.traverse.all_hits_wide`.
+    """
+    n = end - begin
     if n <= INSERTION_SORT_MAX:
-        for i in range(1, n):
+        for i in range(begin + 1, end):
             j = i
-            while j > 0 and hit_less(t, prim, j, j - 1):
+            while j > begin and hit_before(t, prim, j, j - 1):
                 swap_hits(t, prim, u, v, j, j - 1)
                 j -= 1
         return
-    for start in range(n // 2 - 1, -1, -1):
-        sift_down(t, prim, u, v, start, n)
-    for end in range(n - 1, 0, -1):
-        swap_hits(t, prim, u, v, 0, end)
-        sift_down(t, prim, u, v, 0, end)
+    for root in range(n // 2 - 1, -1, -1):
+        sift_down(t, prim, u, v, begin, root, n)
+    for last in range(n - 1, 0, -1):
+        swap_hits(t, prim, u, v, begin, begin + last)
+        sift_down(t, prim, u, v, begin, 0, last)
 
 
 sort_hits = cpu_inline(sort_hits_py)
@@ -155,72 +159,66 @@ def _all_hits_kernel(fill: bool, parallel: bool) -> Any:
                 if chunk < 0:
                     break
                 for r in range(chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK)):
+                    # The whole interval stays open: no hit culls anything.
                     (
-                        valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_top, pad,
-                    ) = ray_prologue(origin, direction, tmin, tmax, r, root_box)  # fmt: skip
+                        _valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                        kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_top, _pad,
+                        box_lo, box_hi, entry, _prim, _u, _v,
+                    ) = ray_start(origin, direction, tmin, tmax, r, root_box)  # fmt: skip
                     n_hits = 0
-                    if valid:
-                        # The whole interval stays open: no hit culls anything.
-                        box_lo = t_lo - pad
-                        box_hi = t_top + pad
-                        entry = root_entry(
-                            root_box, ox, oy, oz, ix, iy, iz,
-                            nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                        )  # fmt: skip
-                        node = root
-                        sp = 0
-                        done = entry == INF32
-                        while not done:
-                            if node >= 0:
-                                # Inner row: go to a hit child, push the other if hit too.
-                                t0 = box_entry(
-                                    box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz,
-                                    fx, fy, fz, box_lo, box_hi,
-                                )  # fmt: skip
-                                t1 = box_entry(
-                                    box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz,
-                                    fx, fy, fz, box_lo, box_hi,
-                                )  # fmt: skip
-                                if t0 < INF32:
-                                    if t1 < INF32:
-                                        stack[sp] = refs[node, 13]
-                                        sp += 1
-                                    node = refs[node, 12]
-                                    continue
+                    node = root
+                    sp = 0
+                    done = entry == INF32
+                    while not done:
+                        if node >= 0:
+                            # Inner row: go to a hit child, push the other if hit too.
+                            t0 = box_entry(
+                                box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz,
+                                fx, fy, fz, box_lo, box_hi,
+                            )  # fmt: skip
+                            t1 = box_entry(
+                                box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz,
+                                fx, fy, fz, box_lo, box_hi,
+                            )  # fmt: skip
+                            if t0 < INF32:
                                 if t1 < INF32:
-                                    node = refs[node, 13]
-                                    continue
-                            else:
-                                # Leaf: every triangle hit in the interval counts, once.
-                                first = leaf_first[~node]
-                                last = first + leaf_count[~node]
-                                for i in range(first, last):
-                                    prim = tri_prim[i]
-                                    if n_mailbox > 0:
-                                        if mailbox[prim] == r:
-                                            continue
-                                        mailbox[prim] = r
-                                    t, u, v = ray_triangle(
-                                        tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz,
-                                        t_lo, t_top,
-                                    )  # fmt: skip
-                                    if t < INF32:
-                                        if fill:
-                                            buf_t[n_hits] = t
-                                            buf_prim[n_hits] = prim
-                                            buf_u[n_hits] = u
-                                            buf_v[n_hits] = v
-                                        n_hits += 1
-                            # Pop the next postponed subtree.
-                            if sp == 0:
-                                done = True
-                            else:
-                                sp -= 1
-                                node = stack[sp]
+                                    stack[sp] = refs[node, 13]
+                                    sp += 1
+                                node = refs[node, 12]
+                                continue
+                            if t1 < INF32:
+                                node = refs[node, 13]
+                                continue
+                        else:
+                            # Leaf: every triangle hit in the interval counts, once.
+                            first = leaf_first[~node]
+                            last = first + leaf_count[~node]
+                            for i in range(first, last):
+                                prim = tri_prim[i]
+                                if n_mailbox > 0:
+                                    if mailbox[prim] == r:
+                                        continue
+                                    mailbox[prim] = r
+                                t, u, v = ray_triangle(
+                                    tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz,
+                                    t_lo, t_top,
+                                )  # fmt: skip
+                                if t < INF32:
+                                    if fill:
+                                        buf_t[n_hits] = t
+                                        buf_prim[n_hits] = prim
+                                        buf_u[n_hits] = u
+                                        buf_v[n_hits] = v
+                                    n_hits += 1
+                        # Pop the next postponed subtree.
+                        if sp == 0:
+                            done = True
+                        else:
+                            sp -= 1
+                            node = stack[sp]
                     if fill:
                         # Sort the ray's hits by t then primitive, copy to its slice.
-                        sort_hits(buf_t, buf_prim, buf_u, buf_v, n_hits)
+                        sort_hits(buf_t, buf_prim, buf_u, buf_v, 0, n_hits)
                         base = splits[r]
                         for k in range(n_hits):
                             out_t[base + k] = buf_t[k]
@@ -256,8 +254,8 @@ def _run(
         kernel(*args)
 
 
-def _empty_out(n: int, precision: str) -> tuple[FloatArray, IntArray, FloatArray, FloatArray]:
-    """Return the output ``t, prim, u, v`` arrays: ``t, u, v`` in the rays' precision."""
+def empty_hits(n: int, precision: str) -> tuple[FloatArray, IntArray, FloatArray, FloatArray]:
+    """Return ``n`` uninitialised hits ``t, prim, u, v``: ``t, u, v`` in the rays' precision."""
     real = np.float64 if precision == "float64" else np.float32
     return (
         np.empty(n, dtype=real),
@@ -290,7 +288,7 @@ def count_all_hits(
     arrays = packed_layout(bvh, mesh, cache).arrays()
     n_mailbox = bvh.n_prims if bvh.n_refs > bvh.n_prims else 0
     splits = np.zeros(1, dtype=np.int64)
-    _run(False, arrays, rays, n_mailbox, counts, splits, _empty_out(0, rays.precision), 0)
+    _run(False, arrays, rays, n_mailbox, counts, splits, empty_hits(0, rays.precision), 0)
     return counts
 
 
@@ -321,11 +319,11 @@ def list_all_hits(
     counts = np.zeros(n, dtype=np.int32)
     splits = np.zeros(n + 1, dtype=np.int64)
     if n == 0:
-        return (splits, *_empty_out(0, rays.precision))
+        return (splits, *empty_hits(0, rays.precision))
     arrays = packed_layout(bvh, mesh, cache).arrays()
     n_mailbox = bvh.n_prims if bvh.n_refs > bvh.n_prims else 0
-    _run(False, arrays, rays, n_mailbox, counts, splits, _empty_out(0, rays.precision), 0)
+    _run(False, arrays, rays, n_mailbox, counts, splits, empty_hits(0, rays.precision), 0)
     np.cumsum(counts, out=splits[1:])
-    out = _empty_out(int(splits[-1]), rays.precision)
+    out = empty_hits(int(splits[-1]), rays.precision)
     _run(True, arrays, rays, n_mailbox, counts, splits, out, int(counts.max()))
     return (splits, *out)

@@ -45,6 +45,9 @@ from rayaccel._jit import atomic_fetch_add, cpu_inline, cpu_kernel
 from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
 from rayaccel.bvh.layouts.wide import ref_column
+from rayaccel.bvh.traverse.all_hits import INSERTION_SORT_MAX as INSERTION_SORT_MAX
+from rayaccel.bvh.traverse.all_hits import empty_hits, sort_hits
+from rayaccel.bvh.traverse.building_blocks import lane_planes
 from rayaccel.bvh.traverse.wide import wide_bvh
 from rayaccel.config import parallel_section
 from rayaccel.dtypes import Int64Array, IntArray, RealArray
@@ -53,7 +56,7 @@ from rayaccel.kernels.aabb_wide import slab_test8
 from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.rays.batch import RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import PARALLEL_MIN_RAYS
 from rayaccel.trace.skeleton import RAY_CHUNK
 
@@ -65,45 +68,8 @@ _REF_COL = ref_column(WIDTH)
 STACK_ENTRIES = (WIDTH - 1) * MAX_DEPTH + WIDTH + 1
 #: Room reserved per ray in the first run (a batch with more hits runs again).
 HITS_PER_RAY = 16
-#: Hits of one ray sorted by insertion sort up to this many; heapsort beyond.
-INSERTION_SORT_MAX = 24
 #: First size of a worker's chunk buffers (they double when full).
 CHUNK_BUFFER = 256
-
-
-def hit_before_py(t, prim, i, j):
-    """Whether buffered hit ``i`` sorts before hit ``j``: by ``t``, then triangle."""
-    return t[i] < t[j] or (t[i] == t[j] and prim[i] < prim[j])
-
-
-def swap_py(t, prim, u, v, i, j):
-    """Swap buffered hits ``i`` and ``j``."""
-    t[i], t[j] = t[j], t[i]
-    prim[i], prim[j] = prim[j], prim[i]
-    u[i], u[j] = u[j], u[i]
-    v[i], v[j] = v[j], v[i]
-
-
-hit_before = cpu_inline(hit_before_py)
-swap = cpu_inline(swap_py)
-
-
-def sift_down_py(t, prim, u, v, base, root, end):
-    """Restore the max-heap below ``root`` of the heap ``base + [0, end)`` (heapsort)."""
-    while True:
-        child = 2 * root + 1
-        if child >= end:
-            return
-        if child + 1 < end and hit_before(t, prim, base + child, base + child + 1):
-            child += 1
-        if hit_before(t, prim, base + root, base + child):
-            swap(t, prim, u, v, base + root, base + child)
-            root = child
-        else:
-            return
-
-
-sift_down = cpu_inline(sift_down_py)
 
 
 def sort_unique_py(t, prim, u, v, begin, end):
@@ -113,18 +79,7 @@ def sort_unique_py(t, prim, u, v, begin, end):
     time, so its repeats have the same ``t`` and sort next to each other.
     """
     n = end - begin
-    if n <= INSERTION_SORT_MAX:
-        for i in range(begin + 1, end):
-            j = i
-            while j > begin and hit_before(t, prim, j, j - 1):
-                swap(t, prim, u, v, j, j - 1)
-                j -= 1
-    else:
-        for root in range(n // 2 - 1, -1, -1):
-            sift_down(t, prim, u, v, begin, root, n)
-        for last in range(n - 1, 0, -1):
-            swap(t, prim, u, v, begin, begin + last)
-            sift_down(t, prim, u, v, begin, 0, last)
+    sort_hits(t, prim, u, v, begin, end)
     # Keep the first of each run of one triangle.
     kept = min(n, 1)
     for i in range(begin + 1, end):
@@ -160,61 +115,51 @@ def walk_chunk_py(
     overflowed = 0
     for r in range(begin, end):
         start = n
+        # The whole interval stays open: no hit culls anything.
         (
-            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_top, pad,
-        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-        if valid:
-            # The whole interval stays open: no hit culls anything.
-            box_lo = t_lo - pad
-            box_hi = t_top + pad
-            near_x = WIDTH * nx
-            far_x = WIDTH - near_x
-            near_y = WIDTH * (ny - 2) + 2 * WIDTH
-            far_y = 5 * WIDTH - near_y
-            near_z = WIDTH * (nz - 4) + 4 * WIDTH
-            far_z = 9 * WIDTH - near_z
-            entry = root_entry(
-                bvh.root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, box_lo, box_hi
-            )
-            sp = 0
-            if entry < INF32:
-                stack[0] = bvh.root_ref[0]
-                sp = 1
-            while sp > 0:
-                sp -= 1
-                node = stack[sp]
-                if node >= 0:
-                    # Inner row: push every hit child (the order does not matter).
-                    mask = slab_test8(
-                        box, node, near_x, far_x, near_y, far_y, near_z, far_z,
-                        ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
-                    )  # fmt: skip
-                    if sp + WIDTH > STACK_ENTRIES:
-                        overflowed += 1
-                        break
-                    while mask != 0:
-                        j = trailing_zeros(mask)
-                        mask &= mask - 1
-                        stack[sp] = refs[node, _REF_COL + j]
-                        sp += 1
-                else:
-                    # Leaf: every triangle hit in the interval goes to the buffers.
-                    leaf = ~node
-                    first = bvh.leaf_first[leaf]
-                    last = first + bvh.leaf_count[leaf]
-                    for i in range(first, last):
-                        t, u, v = ray_triangle(
-                            bvh.tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_top
-                        )
-                        if t < INF32:
-                            if n == size:
-                                return n, overflowed, True
-                            buf_t[n] = t
-                            buf_prim[n] = bvh.tri_prim[i]
-                            buf_u[n] = u
-                            buf_v[n] = v
-                            n += 1
+            _valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_top, _pad,
+            box_lo, box_hi, entry, _prim, _u, _v,
+        ) = ray_start(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        near_x, far_x, near_y, far_y, near_z, far_z = lane_planes(WIDTH, nx, ny, nz, fx, fy, fz)
+        sp = 0
+        if entry < INF32:
+            stack[0] = bvh.root_ref[0]
+            sp = 1
+        while sp > 0:
+            sp -= 1
+            node = stack[sp]
+            if node >= 0:
+                # Inner row: push every hit child (the order does not matter).
+                mask = slab_test8(
+                    box, node, near_x, far_x, near_y, far_y, near_z, far_z,
+                    ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
+                )  # fmt: skip
+                if sp + WIDTH > STACK_ENTRIES:
+                    overflowed += 1
+                    break
+                while mask != 0:
+                    j = trailing_zeros(mask)
+                    mask &= mask - 1
+                    stack[sp] = refs[node, _REF_COL + j]
+                    sp += 1
+            else:
+                # Leaf: every triangle hit in the interval goes to the buffers.
+                leaf = ~node
+                first = bvh.leaf_first[leaf]
+                last = first + bvh.leaf_count[leaf]
+                for i in range(first, last):
+                    t, u, v = ray_triangle(
+                        bvh.tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_top
+                    )
+                    if t < INF32:
+                        if n == size:
+                            return n, overflowed, True
+                        buf_t[n] = t
+                        buf_prim[n] = bvh.tri_prim[i]
+                        buf_u[n] = u
+                        buf_v[n] = v
+                        n += 1
         # This ray's hits in order, each triangle once.
         kept = sort_unique(buf_t, buf_prim, buf_u, buf_v, start, n)
         n = start + kept
@@ -322,15 +267,6 @@ def _gather_kernel(chunk_start, chunk_count, splits, src_t, src_prim, src_u, src
             out_v[target + k] = src_v[source + k]
 
 
-def _empty_out(n: int, dtype: Any) -> tuple[RealArray, IntArray, RealArray, RealArray]:
-    return (
-        np.empty(n, dtype=dtype),
-        np.empty(n, dtype=np.int32),
-        np.empty(n, dtype=dtype),
-        np.empty(n, dtype=dtype),
-    )
-
-
 def list_all_hits_wide(
     bvh: Bvh2, mesh: TriangleMesh, rays: RayBatch, cache: dict[str, Any] | None = None
 ) -> tuple[Int64Array, RealArray, IntArray, RealArray, RealArray]:
@@ -365,7 +301,7 @@ def list_all_hits_wide(
     n = rays.n_rays
     splits = np.zeros(n + 1, dtype=np.int64)
     if n == 0:
-        return (splits, *_empty_out(0, rays.origin.dtype))
+        return (splits, *empty_hits(0, rays.precision))
     arrays = wide_bvh(bvh, mesh, cache, WIDTH).arrays()
     n_chunks = (n + RAY_CHUNK - 1) // RAY_CHUNK
     counts = np.zeros(n, dtype=np.int32)
@@ -376,7 +312,7 @@ def list_all_hits_wide(
     capacity = HITS_PER_RAY * n
     while True:
         used = np.zeros(1, dtype=np.int64)
-        buffers = _empty_out(capacity, rays.origin.dtype)
+        buffers = empty_hits(capacity, rays.precision)
         args = (
             arrays, rays.origin, rays.direction, rays.tmin, rays.tmax, counts, chunk_start,
             chunk_count, used, *buffers, numba.get_num_threads(),
@@ -396,6 +332,6 @@ def list_all_hits_wide(
         # More hits than room: run again into output of the exact size.
         capacity = int(used[0])
     np.cumsum(counts, out=splits[1:])
-    out = _empty_out(int(splits[-1]), rays.origin.dtype)
+    out = empty_hits(int(splits[-1]), rays.precision)
     _gather_kernel(chunk_start, chunk_count, splits, *buffers, *out)
     return (splits, *out)

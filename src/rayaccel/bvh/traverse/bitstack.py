@@ -32,33 +32,31 @@ from typing import Any
 
 import numpy as np
 
-from rayaccel._jit import cpu_inline, prefetch_row
+from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
-from rayaccel.bvh.layouts.bvh2 import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.layouts.bvh2 import PACKED_ROW_BYTES, Bvh2
 from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, linked_layout
-from rayaccel.bvh.traverse.building_blocks import INF32, box_entry, check_trail_depth, pick
+from rayaccel.bvh.traverse.building_blocks import (
+    INF32,
+    box_entry,
+    check_trail_depth,
+    child_entries,
+    leaf_hits,
+    pick,
+    tally_backtrack,
+)
 from rayaccel.bvh.traverse.stack import packed_layout
-from rayaccel.counters import Counter
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.leaf import intersect_leaf
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels, run_trace
-from rayaccel.trace.skeleton import store_hit
-
-ZERO32 = np.float32(0.0)
-_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
+from rayaccel.trace.skeleton import no_scratch, store_backtracks, store_counts, store_hit
 
 
 @dataclass(frozen=True, slots=True)
 class BitstackOptions:
     """Options of the ``bvh2.bitstack`` traversal (none; kept for a uniform API)."""
-
-
-def make_scratch_py(bvh):
-    """Return one worker's scratch: none (a ray's state is one int64 and its node)."""
-    return 0
 
 
 def trace_rays_py(
@@ -75,34 +73,15 @@ def trace_rays_py(
     box = bvh.inner_box
     refs = bvh.inner_ref
     for r in range(begin, end):
-        n_steps = 0
-        n_nodes = 0
-        n_box = 0
-        n_prim = 0
-        n_up = 0
-        n_bytes = 0
-        hist0 = 0
-        hist1 = 0
-        hist2 = 0
-        hist3 = 0
+        n_steps = n_nodes = n_prim = n_up = n_bytes = 0
+        targets = (0, 0, 0, 0)
         (
             valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
             kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-        best_prim = -1
-        best_u = ZERO32
-        best_v = ZERO32
-        box_lo = t_lo - pad
-        box_hi = t_hit + pad
-        entry = INF32
-        if valid:
-            # The root box is tested once up front.
-            entry = root_entry(
-                bvh.root_box, ox, oy, oz, ix, iy, iz,
-                nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-            )  # fmt: skip
-            if with_stats:
-                n_box += 1
+            box_lo, box_hi, entry, best_prim, best_u, best_v,
+        ) = ray_start(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        # The root box was tested once up front.
+        n_box = 1 if valid else 0
         node = bvh.root_ref[0]
         bits = np.int64(0)
         done = entry == INF32
@@ -113,23 +92,10 @@ def trace_rays_py(
             if node >= 0:
                 # Inner row: test both children; descend into the nearer hit one
                 # and mark the level when the other is pending.
-                c0 = refs[node, 12]
-                c1 = refs[node, 13]
-                if c0 >= 0:
-                    prefetch_row(box, c0)
-                if c1 >= 0:
-                    prefetch_row(box, c1)
-                t0 = box_entry(
-                    box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    box_lo, box_hi,
+                c0, c1, t0, t1, n_box, n_bytes = child_entries(
+                    box, refs, node, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    box_lo, box_hi, n_box, n_bytes, with_stats,
                 )  # fmt: skip
-                t1 = box_entry(
-                    box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    box_lo, box_hi,
-                )  # fmt: skip
-                if with_stats:
-                    n_box += 2
-                    n_bytes += PACKED_ROW_BYTES
                 if t0 < INF32 or t1 < INF32:
                     bits <<= 1
                     if t0 < INF32 and t1 < INF32:
@@ -138,17 +104,10 @@ def trace_rays_py(
                     continue
             else:
                 # Leaf: test its triangles, shrinking t_hit.
-                first = bvh.leaf_first[~node]
-                last = first + bvh.leaf_count[~node]
-                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                    query == QUERY_ANY,
+                t_hit, best_prim, best_u, best_v, box_hi, n_prim, n_bytes = leaf_hits(
+                    bvh, ~node, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                    best_prim, best_u, best_v, query == QUERY_ANY, n_prim, n_bytes, with_stats,
                 )  # fmt: skip
-                box_hi = t_hit + pad
-                if with_stats:
-                    n_prim += tested
-                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
                 if query == QUERY_ANY and best_prim >= 0:
                     break
             # Backtrack: climb while the level has nothing pending, then go to
@@ -172,14 +131,7 @@ def trace_rays_py(
                 if with_stats:
                     n_box += 1
                     n_bytes += PACKED_ROW_BYTES
-                    if climbed == 0:
-                        hist0 += 1
-                    elif climbed == 1:
-                        hist1 += 1
-                    elif climbed == 2:
-                        hist2 += 1
-                    else:
-                        hist3 += 1
+                    targets = tally_backtrack(climbed, targets)
                 climbed = 0
                 node = refs[parent, 12 + slot]
                 t = box_entry(
@@ -190,24 +142,15 @@ def trace_rays_py(
                     done = False
                     break
         if with_stats:
-            counters[r, Counter.STEPS] = n_steps
-            counters[r, Counter.NODES] = n_nodes
-            counters[r, Counter.BOX_TESTS] = n_box
-            counters[r, Counter.PRIM_TESTS] = n_prim
-            counters[r, Counter.BACKTRACKS] = n_up
-            counters[r, Counter.BACKTRACK_SIBLING] = hist0
-            counters[r, Counter.BACKTRACK_UNCLE] = hist1
-            counters[r, Counter.BACKTRACK_GRAND_UNCLE] = hist2
-            counters[r, Counter.BACKTRACK_FURTHER] = hist3
-            counters[r, Counter.BYTES] = n_bytes
+            store_counts(counters, r, n_steps, n_nodes, n_box, n_prim, 0, n_bytes)
+            store_backtracks(counters, r, 0, n_up, 0, targets)
         store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
     return 0
 
 
-make_scratch = cpu_inline(make_scratch_py)
 trace_rays = cpu_inline(trace_rays_py)
 #: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
-trace_kernel = body_kernels(make_scratch, trace_rays)
+trace_kernel = body_kernels(no_scratch, trace_rays)
 
 
 @register(

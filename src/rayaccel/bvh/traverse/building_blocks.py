@@ -17,12 +17,21 @@ from typing import Any
 
 import numpy as np
 
-from rayaccel._jit import cpu_inline, keep_branch
-from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, STACK_SIZE
+from rayaccel._jit import cpu_inline, keep_branch, prefetch_row
+from rayaccel.bvh.layouts.bvh2 import (
+    LEAF_BYTES,
+    MAX_DEPTH,
+    PACKED_ROW_BYTES,
+    REF_BYTES,
+    STACK_SIZE,
+    TRIANGLE_BYTES,
+)
 from rayaccel.errors import TraversalOverflowError
 from rayaccel.kernels.aabb import ray_box_entry, ray_box_exit
+from rayaccel.trace.leaf import intersect_leaf
 
 INF32 = np.float32(np.inf)
+_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
 
 
 def box_entry_py(box, row, col, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, lo, hi):
@@ -58,6 +67,97 @@ def pick_py(first, a, b):
 box_entry = cpu_inline(box_entry_py)
 box_exit = cpu_inline(box_exit_py)
 pick = cpu_inline(pick_py)
+
+
+def lane_planes_py(lanes, nx, ny, nz, fx, fy, fz):
+    """Return the near and far plane columns ``(near_x, far_x, near_y, far_y, near_z, far_z)``.
+
+    For a row of ``lanes`` boxes stored structure-of-arrays (plane ``k`` of lane ``c``
+    is column ``lanes * k + c``: the pairs layout of ``bvh2.stack``, 2 lanes, and the
+    wide rows, 4 or 8), from the ray's interleaved near and far plane indices
+    (:func:`rayaccel.trace.ray_setup.ray_prologue_py`). (Products of the indices, each
+    a choice between two constants, so the columns stay constants the compiler hoists.)
+    """
+    return lanes * nx, lanes * fx, lanes * ny, lanes * fy, lanes * nz, lanes * fz
+
+
+lane_planes = cpu_inline(lane_planes_py)
+
+
+def child_entries_py(
+    box, refs, node, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, lo, hi,
+    n_box, n_bytes, with_stats,
+):  # fmt: skip
+    """Test both children of the packed inner row ``node`` (64 bytes).
+
+    Starts fetching the inner children's rows first, so the fetch overlaps the box
+    tests. Returns ``(c0, c1, t0, t1, n_box, n_bytes)``: the children's references,
+    their entry distances within ``[lo, hi]`` (inf: missed) and, with ``with_stats``,
+    the box test and byte counters advanced by the two tests and the row.
+    """
+    c0 = refs[node, 12]
+    c1 = refs[node, 13]
+    if c0 >= 0:
+        prefetch_row(box, c0)
+    if c1 >= 0:
+        prefetch_row(box, c1)
+    t0 = box_entry(box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, lo, hi)
+    t1 = box_entry(box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, lo, hi)
+    if with_stats:
+        n_box += 2
+        n_bytes += PACKED_ROW_BYTES
+    return c0, c1, t0, t1, n_box, n_bytes
+
+
+child_entries = cpu_inline(child_entries_py)
+
+
+def leaf_hits_py(
+    bvh, leaf, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+    best_prim, best_u, best_v, stop_at_first, n_prim, n_bytes, with_stats,
+):  # fmt: skip
+    """Test the triangles of leaf ``leaf`` (``leaf_first``/``leaf_count`` of ``bvh``).
+
+    Returns ``(t_hit, best_prim, best_u, best_v, box_hi, n_prim, n_bytes)``: the hit
+    as :func:`rayaccel.trace.leaf.intersect_leaf` leaves it, the culling interval's
+    new end ``t_hit + pad``, and, with ``with_stats``, the triangle test and byte
+    counters advanced by the triangles tested and the leaf record.
+    """
+    first = bvh.leaf_first[leaf]
+    last = first + bvh.leaf_count[leaf]
+    t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+        bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+        Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,
+    )  # fmt: skip
+    if with_stats:
+        n_prim += tested
+        n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
+    return t_hit, best_prim, best_u, best_v, t_hit + pad, n_prim, n_bytes
+
+
+leaf_hits = cpu_inline(leaf_hits_py)
+
+
+def tally_backtrack_py(levels, targets):
+    """Return the histogram ``targets`` with a backtrack ``levels`` levels up counted.
+
+    ``targets`` counts backtracks to the sibling (0 levels up), the uncle (1), the
+    grand-uncle (2) and further up; a ray starts with ``(0, 0, 0, 0)``
+    (:func:`rayaccel.trace.skeleton.store_backtracks` stores it).
+    """
+    sibling, uncle, grand_uncle, further = targets
+    if levels == 0:
+        sibling += 1
+    elif levels == 1:
+        uncle += 1
+    elif levels == 2:
+        grand_uncle += 1
+    else:
+        further += 1
+    return sibling, uncle, grand_uncle, further
+
+
+tally_backtrack = cpu_inline(tally_backtrack_py)
 
 
 def check_trail_depth(bvh: Any, cache: dict[str, Any] | None, key: str) -> None:

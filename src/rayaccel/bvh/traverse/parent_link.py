@@ -37,25 +37,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
-from rayaccel.bvh.layouts.bvh2 import LEAF_BYTES, PACKED_ROW_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.layouts.bvh2 import PACKED_ROW_BYTES, Bvh2
 from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, linked_layout
-from rayaccel.bvh.traverse.building_blocks import INF32, box_entry
+from rayaccel.bvh.traverse.building_blocks import INF32, box_entry, leaf_hits
 from rayaccel.bvh.traverse.stack import packed_layout
-from rayaccel.counters import Counter
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.leaf import intersect_leaf
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels, run_trace
-from rayaccel.trace.skeleton import store_hit
+from rayaccel.trace.skeleton import no_scratch, store_backtracks, store_counts, store_hit
 
-ZERO32 = np.float32(0.0)
-_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
 #: States of the machine (Hapala et al.: from parent, from child, from sibling).
 DOWN = 0
 UP = 1
@@ -67,9 +61,18 @@ class ParentLinkOptions:
     """Options of the ``bvh2.parent_link`` traversal (none; kept for a uniform API)."""
 
 
-def make_scratch_py(bvh):
-    """Return one worker's scratch: none (a ray's state is its row, slot and machine state)."""
-    return 0
+def climb_py(row_up, row, n_bytes, with_stats):
+    """Follow the up-link of row ``row``: return ``(parent row, slot of row in it, n_bytes)``.
+
+    With ``with_stats`` the byte counter is advanced by the link read.
+    """
+    up = row_up[row]
+    if with_stats:
+        n_bytes += LINK_BYTES
+    return up >> 1, up & 1, n_bytes
+
+
+climb = cpu_inline(climb_py)
 
 
 def trace_rays_py(
@@ -86,44 +89,24 @@ def trace_rays_py(
     box = bvh.inner_box
     refs = bvh.inner_ref
     for r in range(begin, end):
-        n_steps = 0
-        n_nodes = 0
-        n_box = 0
-        n_prim = 0
-        n_up = 0
-        n_bytes = 0
+        n_steps = n_nodes = n_prim = n_up = n_bytes = 0
         (
             valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
             kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-        best_prim = -1
-        best_u = ZERO32
-        best_v = ZERO32
-        box_lo = t_lo - pad
-        box_hi = t_hit + pad
+            box_lo, box_hi, entry, best_prim, best_u, best_v,
+        ) = ray_start(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        # The root box was tested once up front.
+        n_box = 1 if valid else 0
         root = bvh.root_ref[0]
-        entry = INF32
-        if valid:
-            # The root box is tested once up front.
-            entry = root_entry(
-                bvh.root_box, ox, oy, oz, ix, iy, iz,
-                nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-            )  # fmt: skip
-            if with_stats:
-                n_box += 1
         if entry < INF32 and root < 0:
             # A single-leaf tree.
-            first = bvh.leaf_first[~root]
-            last = first + bvh.leaf_count[~root]
-            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, query == QUERY_ANY,
+            t_hit, best_prim, best_u, best_v, box_hi, n_prim, n_bytes = leaf_hits(
+                bvh, ~root, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                best_prim, best_u, best_v, query == QUERY_ANY, n_prim, n_bytes, with_stats,
             )  # fmt: skip
             if with_stats:
                 n_steps += 1
                 n_nodes += 1
-                n_prim += tested
-                n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
         elif entry < INF32:
             row = root
             state = DOWN
@@ -164,11 +147,7 @@ def trace_rays_py(
                         # From the far child: this row is finished, climb.
                         if row == root:
                             break
-                        up = bvh.row_up[row]
-                        row = up >> 1
-                        slot = up & 1
-                        if with_stats:
-                            n_bytes += LINK_BYTES
+                        row, slot, n_bytes = climb(bvh.row_up, row, n_bytes, with_stats)
                         continue
                 # Try child `slot`: enter it if its box is hit within [tmin, t_hit].
                 t = t0 if slot == 0 else t1
@@ -179,19 +158,14 @@ def trace_rays_py(
                         state = DOWN
                         continue
                     # Leaf: test its triangles, shrinking t_hit.
-                    first = bvh.leaf_first[~child]
-                    last = first + bvh.leaf_count[~child]
-                    t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                        bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                        Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                        query == QUERY_ANY,
+                    t_hit, best_prim, best_u, best_v, box_hi, n_prim, n_bytes = leaf_hits(
+                        bvh, ~child, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                        best_prim, best_u, best_v, query == QUERY_ANY, n_prim, n_bytes,
+                        with_stats,
                     )  # fmt: skip
-                    box_hi = t_hit + pad
                     if with_stats:
                         n_steps += 1
                         n_nodes += 1
-                        n_prim += tested
-                        n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
                     if query == QUERY_ANY and best_prim >= 0:
                         break
                 # The child is finished: hand over to the sibling, or climb.
@@ -200,27 +174,18 @@ def trace_rays_py(
                 else:
                     if row == root:
                         break
-                    up = bvh.row_up[row]
-                    row = up >> 1
-                    slot = up & 1
+                    row, slot, n_bytes = climb(bvh.row_up, row, n_bytes, with_stats)
                     state = UP
-                    if with_stats:
-                        n_bytes += LINK_BYTES
         if with_stats:
-            counters[r, Counter.STEPS] = n_steps
-            counters[r, Counter.NODES] = n_nodes
-            counters[r, Counter.BOX_TESTS] = n_box
-            counters[r, Counter.PRIM_TESTS] = n_prim
-            counters[r, Counter.BACKTRACKS] = n_up
-            counters[r, Counter.BYTES] = n_bytes
+            store_counts(counters, r, n_steps, n_nodes, n_box, n_prim, 0, n_bytes)
+            store_backtracks(counters, r, 0, n_up, 0, (0, 0, 0, 0))
         store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
     return 0
 
 
-make_scratch = cpu_inline(make_scratch_py)
 trace_rays = cpu_inline(trace_rays_py)
 #: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
-trace_kernel = body_kernels(make_scratch, trace_rays)
+trace_kernel = body_kernels(no_scratch, trace_rays)
 
 
 @register(

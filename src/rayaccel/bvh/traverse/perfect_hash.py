@@ -51,14 +51,11 @@ import numpy as np
 from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
-from rayaccel._jit import cpu_inline, cpu_kernel, prefetch_row
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register, register_pausable
 from rayaccel.bvh.layouts.bvh2 import (
     CACHE_LINE,
-    LEAF_BYTES,
     PACKED_ROW_BYTES,
-    REF_BYTES,
-    TRIANGLE_BYTES,
     Bvh2,
     PackedBvh2,
     aligned_zeros,
@@ -70,25 +67,24 @@ from rayaccel.bvh.traverse.building_blocks import (
     box_entry,
     box_exit,
     check_trail_depth,
+    child_entries,
+    leaf_hits,
     pick,
+    tally_backtrack,
 )
 from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.config import parallel_section
-from rayaccel.counters import Counter
 from rayaccel.dtypes import REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.leaf import intersect_leaf
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
-from rayaccel.trace.skeleton import store_hit
+from rayaccel.trace.skeleton import no_scratch, store_backtracks, store_counts, store_hit
 
-ZERO32 = np.float32(0.0)
 TWO32 = np.float32(2.0)
-_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
 #: Building-block switches, passed to the kernel as one bit mask.
 USE_HASH = 1
 USE_UNCLES = 2
@@ -233,9 +229,16 @@ def keyed_layout(packed: PackedBvh2, cache: dict[str, Any] | None) -> KeyedBvh2:
     return memoised_layout(cache, "bvh2.keyed", lambda: key_packed(packed))
 
 
-def make_scratch_py(bvh):
-    """Return one worker's scratch: none (a ray's state is its node, key, trail and register)."""
-    return 0
+def hash_row_py(table, disp, key):
+    """Return the row of the inner node whose key is ``key``: one probe of the perfect hash.
+
+    ``disp`` has a power-of-two length, so the bucket ``key % len(disp)`` is a mask.
+    """
+    n_table = np.int64(table.shape[0])
+    return table[(key % n_table + disp[key & np.int64(disp.shape[0] - 1)]) % n_table]
+
+
+hash_row = cpu_inline(hash_row_py)
 
 
 def trace_rays_py(
@@ -253,42 +256,21 @@ def trace_rays_py(
     refs = bvh.inner_ref
     table = bvh.hash_table
     disp = bvh.hash_disp
-    n_table = np.int64(table.shape[0])
-    disp_mask = np.int64(disp.shape[0] - 1)
     use_hash = (bvh.switches & USE_HASH) != 0
     use_uncles = (bvh.switches & USE_UNCLES) != 0
     use_register = (bvh.switches & USE_REGISTER) != 0
     use_mask = (bvh.switches & USE_LEVEL_MASK) != 0
     for r in range(begin, end):
-        n_steps = 0
-        n_box = 0
-        n_prim = 0
-        n_bytes = 0
-        n_back = 0
-        n_lookups = 0
-        hist0 = 0
-        hist1 = 0
-        hist2 = 0
-        hist3 = 0
+        n_steps = n_prim = n_bytes = n_back = n_lookups = 0
+        targets = (0, 0, 0, 0)
         (
             valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
             kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-        best_prim = -1
-        best_u = ZERO32
-        best_v = ZERO32
-        box_lo = t_lo - pad
-        box_hi = t_hit + pad
+            box_lo, box_hi, entry, best_prim, best_u, best_v,
+        ) = ray_start(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        # The root box was tested once up front.
+        n_box = 1 if valid else 0
         margin = TWO32 * pad
-        entry = INF32
-        if valid:
-            # The root box is tested once up front.
-            entry = root_entry(
-                bvh.root_box, ox, oy, oz, ix, iy, iz,
-                nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-            )  # fmt: skip
-            if with_stats:
-                n_box += 1
         node = bvh.root_ref[0]
         prow = -1
         key = np.int64(1)
@@ -304,23 +286,10 @@ def trace_rays_py(
                 n_steps += 1
             if node >= 0:
                 # Inner row: test both children, descend into the nearer hit one.
-                c0 = refs[node, 12]
-                c1 = refs[node, 13]
-                if c0 >= 0:
-                    prefetch_row(box, c0)
-                if c1 >= 0:
-                    prefetch_row(box, c1)
-                t0 = box_entry(
-                    box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    box_lo, box_hi,
+                c0, c1, t0, t1, n_box, n_bytes = child_entries(
+                    box, refs, node, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    box_lo, box_hi, n_box, n_bytes, with_stats,
                 )  # fmt: skip
-                t1 = box_entry(
-                    box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    box_lo, box_hi,
-                )  # fmt: skip
-                if with_stats:
-                    n_box += 2
-                    n_bytes += PACKED_ROW_BYTES
                 if t0 < INF32 or t1 < INF32:
                     swap = t1 < t0
                     trail <<= 1
@@ -349,18 +318,11 @@ def trace_rays_py(
                     continue
             else:
                 # Leaf: test its triangles; a hit drops unreachable postponed nodes.
-                first = bvh.leaf_first[~node]
-                last = first + bvh.leaf_count[~node]
                 t_before = t_hit
-                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                    query == QUERY_ANY,
+                t_hit, best_prim, best_u, best_v, box_hi, n_prim, n_bytes = leaf_hits(
+                    bvh, ~node, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                    best_prim, best_u, best_v, query == QUERY_ANY, n_prim, n_bytes, with_stats,
                 )  # fmt: skip
-                box_hi = t_hit + pad
-                if with_stats:
-                    n_prim += tested
-                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
                 if query == QUERY_ANY and best_prim >= 0:
                     break
                 if use_mask and t_hit < t_before:
@@ -375,14 +337,7 @@ def trace_rays_py(
                 slot = key & 1
                 if with_stats:
                     n_back += 1
-                    if n == 0:
-                        hist0 += 1
-                    elif n == 1:
-                        hist1 += 1
-                    elif n == 2:
-                        hist2 += 1
-                    else:
-                        hist3 += 1
+                    targets = tally_backtrack(n, targets)
                 if reg_pos == n:
                     # The register holds it (always the case for a sibling).
                     node = reg_ref
@@ -398,8 +353,7 @@ def trace_rays_py(
                     elif n == 2 and use_uncles:
                         row = refs[prow, 15]
                     elif use_hash:
-                        k = key >> 1
-                        row = table[(k % n_table + disp[k & disp_mask]) % n_table]
+                        row = hash_row(table, disp, key >> 1)
                         if with_stats:
                             n_lookups += 1
                             n_bytes += 2 * ENTRY_BYTES
@@ -425,25 +379,15 @@ def trace_rays_py(
                     done = False
                     break
         if with_stats:
-            counters[r, Counter.STEPS] = n_steps
-            counters[r, Counter.NODES] = n_steps
-            counters[r, Counter.BOX_TESTS] = n_box
-            counters[r, Counter.PRIM_TESTS] = n_prim
-            counters[r, Counter.BACKTRACKS] = n_back
-            counters[r, Counter.HASH_LOOKUPS] = n_lookups
-            counters[r, Counter.BACKTRACK_SIBLING] = hist0
-            counters[r, Counter.BACKTRACK_UNCLE] = hist1
-            counters[r, Counter.BACKTRACK_GRAND_UNCLE] = hist2
-            counters[r, Counter.BACKTRACK_FURTHER] = hist3
-            counters[r, Counter.BYTES] = n_bytes
+            store_counts(counters, r, n_steps, n_steps, n_box, n_prim, 0, n_bytes)
+            store_backtracks(counters, r, 0, n_back, n_lookups, targets)
         store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
     return 0
 
 
-make_scratch = cpu_inline(make_scratch_py)
 trace_rays = cpu_inline(trace_rays_py)
 #: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
-trace_kernel = body_kernels(make_scratch, trace_rays)
+trace_kernel = body_kernels(no_scratch, trace_rays)
 
 
 @register(
@@ -497,25 +441,16 @@ def _resume_kernel(
     box = bvh.inner_box
     table = bvh.hash_table
     disp = bvh.hash_disp
-    n_table = np.int64(table.shape[0])
-    disp_mask = np.int64(disp.shape[0] - 1)
     for r in prange(n_rays):
         if st_status[r] == FINISHED:
             continue
         (
-            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_top, pad,
-        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-        box_lo = t_lo - pad
-        box_hi = t_top + pad
+            _valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_top, _pad,
+            box_lo, box_hi, entry, _prim, _u, _v,
+        ) = ray_start(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
         if st_status[r] == FRESH:
-            # Start: test the root box, then begin at the root.
-            entry = INF32
-            if valid:
-                entry = root_entry(
-                    bvh.root_box, ox, oy, oz, ix, iy, iz,
-                    nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                )  # fmt: skip
+            # Start: unless the root box is missed, begin at the root.
             if entry == INF32:
                 st_status[r] = FINISHED
                 continue
@@ -582,8 +517,7 @@ def _resume_kernel(
             elif n == 2:
                 row = refs[prow, 15]
             else:
-                k = key >> 1
-                row = table[(k % n_table + disp[k & disp_mask]) % n_table]
+                row = hash_row(table, disp, key >> 1)
             node = refs[row, 12 + (key & 1)]
             prow = row
             pos = -1

@@ -41,32 +41,26 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from rayaccel._jit import cpu_inline, prefetch_row
+from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
-from rayaccel.bvh.layouts.bvh2 import (
-    LEAF_BYTES,
-    PACKED_ROW_BYTES,
-    REF_BYTES,
-    STACK_ENTRY_BYTES,
-    STACK_SIZE,
-    TRIANGLE_BYTES,
-    Bvh2,
+from rayaccel.bvh.layouts.bvh2 import STACK_ENTRY_BYTES, STACK_SIZE, Bvh2
+from rayaccel.bvh.traverse.building_blocks import (
+    INF32,
+    check_trail_depth,
+    child_entries,
+    leaf_hits,
+    pick,
 )
-from rayaccel.bvh.traverse.building_blocks import INF32, box_entry, check_trail_depth, pick
 from rayaccel.bvh.traverse.stack import packed_layout
-from rayaccel.counters import Counter
 from rayaccel.dtypes import FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.leaf import intersect_leaf
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels, run_trace
-from rayaccel.trace.skeleton import store_hit
+from rayaccel.trace.skeleton import store_backtracks, store_counts, store_hit
 
-ZERO32 = np.float32(0.0)
-_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
 #: The root level's bit, the trail's sentinel (deeper levels are lower bits).
 ROOT_LEVEL = np.int64(1) << np.int64(62)
 
@@ -133,31 +127,14 @@ def trace_rays_py(
     box = bvh.inner_box
     refs = bvh.inner_ref
     for r in range(begin, end):
-        n_steps = 0
-        n_box = 0
-        n_prim = 0
-        n_bytes = 0
-        n_restarts = 0
-        n_pops = 0
-        peak = 0
+        n_steps = n_prim = n_bytes = n_restarts = n_pops = peak = 0
         (
             valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
             kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-        best_prim = -1
-        best_u = ZERO32
-        best_v = ZERO32
-        box_lo = t_lo - pad
-        box_hi = t_hit + pad
-        entry = INF32
-        if valid:
-            # The root box is tested once up front.
-            entry = root_entry(
-                bvh.root_box, ox, oy, oz, ix, iy, iz,
-                nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-            )  # fmt: skip
-            if with_stats:
-                n_box += 1
+            box_lo, box_hi, entry, best_prim, best_u, best_v,
+        ) = ray_start(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+        # The root box was tested once up front.
+        n_box = 1 if valid else 0
         node = bvh.root_ref[0]
         trail = np.int64(0)
         level = ROOT_LEVEL
@@ -171,23 +148,10 @@ def trace_rays_py(
             pop = True
             if node >= 0:
                 # Inner row: test both children from the 64-byte row.
-                c0 = refs[node, 12]
-                c1 = refs[node, 13]
-                if c0 >= 0:
-                    prefetch_row(box, c0)
-                if c1 >= 0:
-                    prefetch_row(box, c1)
-                t0 = box_entry(
-                    box, node, 0, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    box_lo, box_hi,
+                c0, c1, t0, t1, n_box, n_bytes = child_entries(
+                    box, refs, node, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                    box_lo, box_hi, n_box, n_bytes, with_stats,
                 )  # fmt: skip
-                t1 = box_entry(
-                    box, node, 6, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    box_lo, box_hi,
-                )  # fmt: skip
-                if with_stats:
-                    n_box += 2
-                    n_bytes += PACKED_ROW_BYTES
                 if t0 < INF32 or t1 < INF32:
                     level >>= 1
                     swap = t1 < t0
@@ -218,17 +182,10 @@ def trace_rays_py(
                     # (the ray got shorter): pop instead of re-entering the near.
             else:
                 # Leaf: test its triangles, shrinking t_hit.
-                first = bvh.leaf_first[~node]
-                last = first + bvh.leaf_count[~node]
-                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                    query == QUERY_ANY,
+                t_hit, best_prim, best_u, best_v, box_hi, n_prim, n_bytes = leaf_hits(
+                    bvh, ~node, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                    best_prim, best_u, best_v, query == QUERY_ANY, n_prim, n_bytes, with_stats,
                 )  # fmt: skip
-                box_hi = t_hit + pad
-                if with_stats:
-                    n_prim += tested
-                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
                 if query == QUERY_ANY and best_prim >= 0:
                     break
             if not pop:
@@ -264,14 +221,8 @@ def trace_rays_py(
                     n_restarts += 1
                 break
         if with_stats:
-            counters[r, Counter.STEPS] = n_steps
-            counters[r, Counter.NODES] = n_steps
-            counters[r, Counter.BOX_TESTS] = n_box
-            counters[r, Counter.PRIM_TESTS] = n_prim
-            counters[r, Counter.STACK_PEAK] = peak
-            counters[r, Counter.RESTARTS] = n_restarts
-            counters[r, Counter.BACKTRACKS] = n_pops
-            counters[r, Counter.BYTES] = n_bytes
+            store_counts(counters, r, n_steps, n_steps, n_box, n_prim, peak, n_bytes)
+            store_backtracks(counters, r, n_restarts, n_pops, 0, (0, 0, 0, 0))
         store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
     return 0
 

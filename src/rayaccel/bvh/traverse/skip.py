@@ -30,35 +30,23 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
-from rayaccel.bvh.layouts.bvh2 import LEAF_BYTES, REF_BYTES, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.layouts.stackless_links import SKIP_ROW_BYTES, skip_layout
-from rayaccel.bvh.traverse.building_blocks import INF32, box_entry
+from rayaccel.bvh.traverse.building_blocks import INF32, box_entry, leaf_hits
 from rayaccel.bvh.traverse.stack import packed_layout
-from rayaccel.counters import Counter
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.leaf import intersect_leaf
-from rayaccel.trace.ray_setup import ray_prologue
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels, run_trace
-from rayaccel.trace.skeleton import store_hit
-
-ZERO32 = np.float32(0.0)
-_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
+from rayaccel.trace.skeleton import no_scratch, store_counts, store_hit
 
 
 @dataclass(frozen=True, slots=True)
 class SkipOptions:
     """Options of the ``bvh2.skip`` traversal (none; kept for a uniform API)."""
-
-
-def make_scratch_py(bvh):
-    """Return one worker's scratch: none (the walk keeps only an index per ray)."""
-    return 0
 
 
 def trace_rays_py(
@@ -76,19 +64,13 @@ def trace_rays_py(
     ints = bvh.node_int
     n_nodes = rows.shape[0]
     for r in range(begin, end):
-        n_steps = 0
-        n_visited = 0
-        n_prim = 0
-        n_bytes = 0
+        n_steps = n_visited = n_prim = n_bytes = 0
+        # (Row 0 is the root: the walk tests it as it tests every row.)
         (
             valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
             kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-        ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-        best_prim = -1
-        best_u = ZERO32
-        best_v = ZERO32
-        box_lo = t_lo - pad
-        box_hi = t_hit + pad
+            box_lo, box_hi, _entry, best_prim, best_u, best_v,
+        ) = ray_start(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
         node = 0 if valid else n_nodes
         while node < n_nodes:
             # Test this row's box: a hit steps into the subtree, a miss skips it.
@@ -107,34 +89,22 @@ def trace_rays_py(
             leaf = ints[node, 7]
             if leaf >= 0:
                 # Leaf: test its triangles, shrinking t_hit, then go on after it.
-                first = bvh.leaf_first[leaf]
-                last = first + bvh.leaf_count[leaf]
-                t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                    bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                    Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                    query == QUERY_ANY,
+                t_hit, best_prim, best_u, best_v, box_hi, n_prim, n_bytes = leaf_hits(
+                    bvh, leaf, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                    best_prim, best_u, best_v, query == QUERY_ANY, n_prim, n_bytes, with_stats,
                 )  # fmt: skip
-                box_hi = t_hit + pad
-                if with_stats:
-                    n_prim += tested
-                    n_bytes += LEAF_BYTES + _PRIM_BYTES * tested
                 if query == QUERY_ANY and best_prim >= 0:
                     break
             node += 1
         if with_stats:
-            counters[r, Counter.STEPS] = n_steps
-            counters[r, Counter.NODES] = n_visited
-            counters[r, Counter.BOX_TESTS] = n_steps
-            counters[r, Counter.PRIM_TESTS] = n_prim
-            counters[r, Counter.BYTES] = n_bytes
+            store_counts(counters, r, n_steps, n_visited, n_steps, n_prim, 0, n_bytes)
         store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
     return 0
 
 
-make_scratch = cpu_inline(make_scratch_py)
 trace_rays = cpu_inline(trace_rays_py)
 #: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
-trace_kernel = body_kernels(make_scratch, trace_rays)
+trace_kernel = body_kernels(no_scratch, trace_rays)
 
 
 @register(

@@ -49,7 +49,7 @@ from rayaccel.bvh.layouts.bvh2 import (
     pack_bvh2,
 )
 from rayaccel.bvh.layouts.pairs import COUNT_COLUMN, REF_COLUMN, PairsBvh2, pairs_layout
-from rayaccel.counters import Counter
+from rayaccel.bvh.traverse.building_blocks import lane_planes
 from rayaccel.kernels.aabb_wide import slab_test2
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -57,7 +57,7 @@ from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
 from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
-from rayaccel.trace.skeleton import store_hit
+from rayaccel.trace.skeleton import store_counts, store_hit
 
 INF32 = np.float32(np.inf)
 ZERO32 = np.float32(0.0)
@@ -95,13 +95,7 @@ def trace_rays_py(
     refs = bvh.ref
     n_overflowed = 0
     for r in range(begin, end):
-        overflowed = 0
-        n_steps = 0
-        n_nodes = 0
-        n_box = 0
-        n_prim = 0
-        peak = 0
-        n_bytes = 0
+        overflowed = n_steps = n_nodes = n_box = n_prim = peak = n_bytes = 0
         # Per-ray constants, shared with every traversal of every family.
         (
             valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
@@ -117,12 +111,7 @@ def trace_rays_py(
             box_hi = t_hit + pad
             # Columns of the near and far plane pairs (pairs.py): plane k of child
             # c is column 2k + c, and nx, ny, nz are the interleaved plane indices.
-            near_x = 2 * nx
-            far_x = 2 * fx
-            near_y = 2 * ny
-            far_y = 2 * fy
-            near_z = 2 * nz
-            far_z = 2 * fz
+            near_x, far_x, near_y, far_y, near_z, far_z = lane_planes(2, nx, ny, nz, fx, fy, fz)
             sp = 0
             # The root box is tested once up front.
             entry = root_entry(
@@ -222,12 +211,7 @@ def trace_rays_py(
                         prefetch_row(box, max(stack_ref[max(sp - 1, 0)], 0))
                         break
         if with_stats:
-            counters[r, Counter.STEPS] = n_steps
-            counters[r, Counter.NODES] = n_nodes
-            counters[r, Counter.BOX_TESTS] = n_box
-            counters[r, Counter.PRIM_TESTS] = n_prim
-            counters[r, Counter.STACK_PEAK] = peak
-            counters[r, Counter.BYTES] = n_bytes
+            store_counts(counters, r, n_steps, n_nodes, n_box, n_prim, peak, n_bytes)
         store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
         n_overflowed += overflowed
     return n_overflowed

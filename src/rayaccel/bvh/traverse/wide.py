@@ -52,20 +52,19 @@ from rayaccel.bvh.layouts.wide import (
     row_floats,
     wide_layout,
 )
+from rayaccel.bvh.traverse.building_blocks import lane_planes
 from rayaccel.bvh.traverse.stack import packed_layout
-from rayaccel.counters import Counter
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb_wide import slab_test4, slab_test8
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
-from rayaccel.trace.skeleton import store_hit
+from rayaccel.trace.skeleton import store_counts, store_hit
 
 INF32 = np.float32(np.inf)
-ZERO32 = np.float32(0.0)
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
 
 
@@ -138,149 +137,124 @@ def wide_body(width: int, any_order: str) -> tuple[Any, Any]:
         refs = bvh.ref
         n_overflowed = 0
         for r in range(begin, end):
-            overflowed = 0
-            n_steps = 0
-            n_nodes = 0
-            n_box = 0
-            n_prim = 0
-            peak = 0
-            n_bytes = 0
+            overflowed = n_steps = n_nodes = n_prim = peak = n_bytes = 0
             (
                 valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
                 kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-            ) = ray_prologue(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
-            best_prim = -1
-            best_u = ZERO32
-            best_v = ZERO32
-            if valid:
-                box_lo = t_lo - pad
-                box_hi = t_hit + pad
-                # Near/far plane columns of each axis in the structure-of-arrays row.
-                near_x = width * nx
-                far_x = width - near_x
-                near_y = width * (ny - 2) + 2 * width
-                far_y = 5 * width - near_y
-                near_z = width * (nz - 4) + 4 * width
-                far_z = 9 * width - near_z
-                sp = 0
-                entry = root_entry(
-                    bvh.root_box, ox, oy, oz, ix, iy, iz,
-                    nx, ny, nz, fx, fy, fz, box_lo, box_hi,
-                )  # fmt: skip
+                box_lo, box_hi, entry, best_prim, best_u, best_v,
+            ) = ray_start(origin, direction, tmin, tmax, r, bvh.root_box)  # fmt: skip
+            # The root box was tested once up front.
+            n_box = 1 if valid else 0
+            # Near/far plane columns of each axis in the structure-of-arrays row.
+            near_x, far_x, near_y, far_y, near_z, far_z = lane_planes(width, nx, ny, nz, fx, fy, fz)
+            sp = 0
+            node = bvh.root_ref[0]
+            done = entry == INF32
+            while not done:
                 if with_stats:
-                    n_box += 1
-                node = bvh.root_ref[0]
-                done = entry == INF32
-                while not done:
+                    n_steps += 1
+                    n_nodes += 1
+                if node >= 0:
+                    # All child boxes in one vector slab test (aabb_wide.py).
+                    if width == 8:
+                        mask = slab_test8(
+                            box, node, near_x, far_x, near_y, far_y, near_z, far_z,
+                            ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
+                        )  # fmt: skip
+                    else:
+                        mask = slab_test4(
+                            box, node, near_x, far_x, near_y, far_y, near_z, far_z,
+                            ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
+                        )  # fmt: skip
                     if with_stats:
-                        n_steps += 1
-                        n_nodes += 1
-                    if node >= 0:
-                        # All child boxes in one vector slab test (aabb_wide.py).
-                        if width == 8:
-                            mask = slab_test8(
-                                box, node, near_x, far_x, near_y, far_y, near_z, far_z,
-                                ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
-                            )  # fmt: skip
-                        else:
-                            mask = slab_test4(
-                                box, node, near_x, far_x, near_y, far_y, near_z, far_z,
-                                ox, oy, oz, ix, iy, iz, box_lo, box_hi, lane_t,
-                            )  # fmt: skip
-                        if with_stats:
-                            n_box += refs[node, count_col]
-                            n_bytes += row_bytes
-                        if mask != 0 and mask & (mask - 1) == 0:
-                            # One hit (the common case): go there, through a branch per
-                            # lane, so the CPU predicts the child and fetches it at once
-                            # instead of waiting for the test to compute its index.
-                            for j in range(width):
-                                if mask == 1 << j:
-                                    keep_branch()
-                                    node = refs[node, ref_col + j]
-                                    break
-                            continue
-                        if mask != 0:
-                            # The first hit lane; with one hit (the common case) go there.
+                        n_box += refs[node, count_col]
+                        n_bytes += row_bytes
+                    if mask != 0 and mask & (mask - 1) == 0:
+                        # One hit (the common case): go there, through a branch per
+                        # lane, so the CPU predicts the child and fetches it at once
+                        # instead of waiting for the test to compute its index.
+                        for j in range(width):
+                            if mask == 1 << j:
+                                keep_branch()
+                                node = refs[node, ref_col + j]
+                                break
+                        continue
+                    if mask != 0:
+                        # The first hit lane; with one hit (the common case) go there.
+                        j = trailing_zeros(mask)
+                        mask &= mask - 1
+                        next_node = refs[node, ref_col + j]
+                        next_t = lane_t[j]
+                        n_hit = 1
+                        # More hits: keep the nearest as the next node and insert the
+                        # others among this row's pushes, nearest on top (a stable
+                        # insertion sort: equal distances keep lane order).
+                        while mask != 0:
                             j = trailing_zeros(mask)
                             mask &= mask - 1
-                            next_node = refs[node, ref_col + j]
-                            next_t = lane_t[j]
-                            n_hit = 1
-                            # More hits: keep the nearest as the next node and insert the
-                            # others among this row's pushes, nearest on top (a stable
-                            # insertion sort: equal distances keep lane order).
-                            while mask != 0:
-                                j = trailing_zeros(mask)
-                                mask &= mask - 1
-                                child = refs[node, ref_col + j]
-                                tj = lane_t[j]
-                                if query == QUERY_ANY and any_in_lanes:
-                                    k = sp  # pushed as they come, unsorted
-                                elif tj < next_t:
-                                    keep_branch()
-                                    child, next_node = next_node, child
-                                    tj, next_t = next_t, tj
-                                    k = sp
-                                    while k > sp - (n_hit - 1) and stack_t[k - 1] < tj:
-                                        stack_ref[k] = stack_ref[k - 1]
-                                        stack_t[k] = stack_t[k - 1]
-                                        k -= 1
-                                else:
-                                    keep_branch()
-                                    k = sp
-                                    while k > sp - (n_hit - 1) and stack_t[k - 1] <= tj:
-                                        stack_ref[k] = stack_ref[k - 1]
-                                        stack_t[k] = stack_t[k - 1]
-                                        k -= 1
-                                stack_ref[k] = child
-                                stack_t[k] = tj
-                                sp += 1
-                                n_hit += 1
-                            if next_node >= 0:
-                                prefetch_row(box, next_node)
-                            if sp > stack_size - width:
-                                overflowed = 1
-                                break
-                            if with_stats and n_hit > 1:
-                                n_bytes += STACK_ENTRY_BYTES * (n_hit - 1)
-                                peak = max(peak, sp)
-                            node = next_node
-                            continue
-                    else:
-                        # Leaf: test its triangles, shrinking t_hit.
-                        leaf = ~node
-                        first = bvh.leaf_first[leaf]
-                        last = first + bvh.leaf_count[leaf]
-                        if with_stats:
-                            n_bytes += LEAF_BYTES + _PRIM_BYTES * (last - first)
-                        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                            bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
-                            Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                            query == QUERY_ANY,
-                        )  # fmt: skip
-                        box_hi = t_hit + pad
-                        if with_stats:
-                            n_prim += tested
-                        if query == QUERY_ANY and best_prim >= 0:
+                            child = refs[node, ref_col + j]
+                            tj = lane_t[j]
+                            if query == QUERY_ANY and any_in_lanes:
+                                k = sp  # pushed as they come, unsorted
+                            elif tj < next_t:
+                                keep_branch()
+                                child, next_node = next_node, child
+                                tj, next_t = next_t, tj
+                                k = sp
+                                while k > sp - (n_hit - 1) and stack_t[k - 1] < tj:
+                                    stack_ref[k] = stack_ref[k - 1]
+                                    stack_t[k] = stack_t[k - 1]
+                                    k -= 1
+                            else:
+                                keep_branch()
+                                k = sp
+                                while k > sp - (n_hit - 1) and stack_t[k - 1] <= tj:
+                                    stack_ref[k] = stack_ref[k - 1]
+                                    stack_t[k] = stack_t[k - 1]
+                                    k -= 1
+                            stack_ref[k] = child
+                            stack_t[k] = tj
+                            sp += 1
+                            n_hit += 1
+                        if next_node >= 0:
+                            prefetch_row(box, next_node)
+                        if sp > stack_size - width:
+                            overflowed = 1
                             break
-                    # Pop the next entry still in front of the closest hit.
-                    done = True
-                    while sp > 0:
-                        sp -= 1
-                        if with_stats:
-                            n_bytes += STACK_ENTRY_BYTES
-                        if stack_t[sp] <= box_hi:
-                            node = stack_ref[sp]
-                            done = False
-                            break
+                        if with_stats and n_hit > 1:
+                            n_bytes += STACK_ENTRY_BYTES * (n_hit - 1)
+                            peak = max(peak, sp)
+                        node = next_node
+                        continue
+                else:
+                    # Leaf: test its triangles, shrinking t_hit.
+                    leaf = ~node
+                    first = bvh.leaf_first[leaf]
+                    last = first + bvh.leaf_count[leaf]
+                    if with_stats:
+                        n_bytes += LEAF_BYTES + _PRIM_BYTES * (last - first)
+                    t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+                        bvh.tri, bvh.tri_prim, first, last, okx, oky, okz, kx, ky, kz,
+                        Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
+                        query == QUERY_ANY,
+                    )  # fmt: skip
+                    box_hi = t_hit + pad
+                    if with_stats:
+                        n_prim += tested
+                    if query == QUERY_ANY and best_prim >= 0:
+                        break
+                # Pop the next entry still in front of the closest hit.
+                done = True
+                while sp > 0:
+                    sp -= 1
+                    if with_stats:
+                        n_bytes += STACK_ENTRY_BYTES
+                    if stack_t[sp] <= box_hi:
+                        node = stack_ref[sp]
+                        done = False
+                        break
             if with_stats:
-                counters[r, Counter.STEPS] = n_steps
-                counters[r, Counter.NODES] = n_nodes
-                counters[r, Counter.BOX_TESTS] = n_box
-                counters[r, Counter.PRIM_TESTS] = n_prim
-                counters[r, Counter.STACK_PEAK] = peak
-                counters[r, Counter.BYTES] = n_bytes
+                store_counts(counters, r, n_steps, n_nodes, n_box, n_prim, peak, n_bytes)
             store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
             n_overflowed += overflowed
         return n_overflowed
