@@ -1,18 +1,35 @@
-"""What every kd traversal shares: the memoised trace layout and the split-plane step.
+"""What every kd traversal shares: the memoised trace layout and the per-ray steps.
 
-The step at an inner node (:func:`split_segments`): the split plane's distance, the near
-and far child, whether the ray's segment ``[tn, tf]`` reaches each, and each child's
-part of it.
+The ray's segment through the scene box (:func:`root_segment`); the step at an inner
+node (:func:`split_segments`): the split plane's distance, the near and far child,
+whether the ray's segment ``[tn, tf]`` reaches each, and each child's part of it; the
+triangle test of a leaf with its counters (:func:`leaf_hits`); the next pending level
+of a restart trail (:func:`next_pending`); and the store of the kd counters
+(:func:`store_leaf_counts`).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from rayaccel._jit import cpu_inline
-from rayaccel.kdtree.layouts.kdtree import KdTraceLayout, KdTree, trace_layout
+from rayaccel.counters import Counter
+from rayaccel.kdtree.layouts.kdtree import (
+    REF_BYTES,
+    STACK_SIZE,
+    TRIANGLE_BYTES,
+    KdTraceLayout,
+    KdTree,
+    trace_layout,
+)
+from rayaccel.kernels.aabb import ray_box_exit
 from rayaccel.scene.mesh import TriangleMesh
+from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.run import memoised_layout
+
+_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
 
 
 def kd_trace_layout(kd: KdTree, mesh: TriangleMesh, cache: dict[str, Any] | None) -> KdTraceLayout:
@@ -81,6 +98,95 @@ def split_segments_py(bits, split, tn, tf, pad, ox, oy, oz, ix, iy, iz):
     if not (far_tn > tn):
         far_tn = tn
     return near, 2 * child + 1 - near, not (ts < tn - pad), not (ts > tf + pad), near_tf, far_tn
+
+
+def make_scratch_py(kd):
+    """Return one worker's stack of (node, segment start, segment end), ``STACK_SIZE`` deep.
+
+    ``kdtree.stack``'s stack, and the short stack's ring at its largest size (the
+    other stackless walks leave it unused).
+    """
+    stack_node = np.empty(STACK_SIZE, dtype=np.int32)
+    stack_tn = np.empty(STACK_SIZE, dtype=np.float32)
+    stack_tf = np.empty(STACK_SIZE, dtype=np.float32)
+    return stack_node, stack_tn, stack_tf
+
+
+make_scratch = cpu_inline(make_scratch_py)
+
+
+def root_segment_py(root_box, ox, oy, oz, ix, iy, iz, fx, fy, fz, t_entry, box_hi):
+    """Return the ray's segment ``[t_entry, t_exit]`` through the scene box.
+
+    ``t_entry`` is the root box's entry distance
+    (:func:`rayaccel.trace.ray_setup.ray_start_py`); the exit is the box's
+    (2-ulp enlarged), cut at the culling interval's end ``box_hi``.
+    """
+    t_exit = ray_box_exit(ox, oy, oz, ix, iy, iz, root_box[fx], root_box[fy], root_box[fz])
+    if box_hi < t_exit:
+        t_exit = box_hi
+    return t_entry, t_exit
+
+
+root_segment = cpu_inline(root_segment_py)
+
+
+def leaf_hits_py(
+    kd, leaf, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+    best_prim, best_u, best_v, stop_at_first, n_leaves, n_empty, n_prim, n_bytes, with_stats,
+):  # fmt: skip
+    """Test the triangles of leaf ``leaf`` (``leaf_first``/``leaf_count`` of ``kd``).
+
+    Returns ``(t_hit, best_prim, best_u, best_v, box_hi, n_leaves, n_empty, n_prim,
+    n_bytes)``: the hit as :func:`rayaccel.trace.leaf.intersect_leaf` leaves it, the
+    culling interval's new end ``t_hit + pad``, and, with ``with_stats``, the leaf,
+    empty leaf, triangle test and byte counters advanced by this leaf.
+    """
+    first = kd.leaf_first[leaf]
+    count = kd.leaf_count[leaf]
+    t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+        kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
+        kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,
+    )  # fmt: skip
+    if with_stats:
+        n_leaves += 1
+        if count == 0:
+            n_empty += 1
+        n_prim += tested
+        n_bytes += _PRIM_BYTES * count
+    return t_hit, best_prim, best_u, best_v, t_hit + pad, n_leaves, n_empty, n_prim, n_bytes
+
+
+leaf_hits = cpu_inline(leaf_hits_py)
+
+
+def next_pending_py(trail, branch, level):
+    """Return ``(trail, branch, k)``: the deepest pending level ``k < level``, now taken.
+
+    ``branch`` has bit ``k`` set where the node at depth ``k`` on the path has both
+    children to visit and only the near one visited; the deepest such bit is cleared,
+    and the trail gets bit ``k`` set ("near child done") and the bits below it cleared.
+    ``branch`` must not be 0.
+    """
+    k = level - 1
+    while not (branch >> k) & 1:
+        k -= 1
+    branch &= ~(np.int64(1) << k)
+    trail = (trail & ((np.int64(1) << k) - 1)) | (np.int64(1) << k)
+    return trail, branch, k
+
+
+next_pending = cpu_inline(next_pending_py)
+
+
+def store_leaf_counts_py(counters, r, leaves, empty_leaves, rope_steps):
+    """Store the kd traversals' own counters of ray ``r`` (0 for one a traversal has not)."""
+    counters[r, Counter.LEAVES] = leaves
+    counters[r, Counter.EMPTY_LEAVES] = empty_leaves
+    counters[r, Counter.ROPE_STEPS] = rope_steps
+
+
+store_leaf_counts = cpu_inline(store_leaf_counts_py)
 
 
 split_distance = cpu_inline(split_distance_py)

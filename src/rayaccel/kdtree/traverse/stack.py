@@ -35,28 +35,24 @@ import numpy as np
 
 from rayaccel._jit import cpu_inline
 from rayaccel._variant import register
-from rayaccel.counters import Counter
 from rayaccel.errors import InvalidInputError
-from rayaccel.kdtree.layouts.kdtree import (
-    NODE_BYTES,
-    REF_BYTES,
-    STACK_SIZE,
-    TRIANGLE_BYTES,
-    KdTree,
+from rayaccel.kdtree.layouts.kdtree import NODE_BYTES, STACK_SIZE, KdTree
+from rayaccel.kdtree.traverse.common import (
+    kd_trace_layout,
+    leaf_hits,
+    root_segment,
+    split_segments,
+    store_leaf_counts,
 )
-from rayaccel.kdtree.traverse.common import kd_trace_layout, split_segments
-from rayaccel.kernels.aabb import ray_box_exit
+from rayaccel.kdtree.traverse.common import make_scratch as make_scratch
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.leaf import intersect_leaf
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels, run_trace
-from rayaccel.trace.skeleton import store_hit
+from rayaccel.trace.skeleton import store_counts, store_hit
 
 INF32 = np.float32(np.inf)
-ZERO32 = np.float32(0.0)
-_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
 _STACK_ENTRY_BYTES = 12
 ORDER_DIRECTION = 0
 ORDER_POSITION = 1
@@ -81,14 +77,6 @@ class KdStackOptions:
             raise InvalidInputError(f"order must be one of {sorted(_ORDERS)}, got {self.order!r}")
 
 
-def make_scratch_py(kd):
-    """Return one worker's stack: node, segment start and end."""
-    stack_node = np.empty(STACK_SIZE, dtype=np.int32)
-    stack_tn = np.empty(STACK_SIZE, dtype=np.float32)
-    stack_tf = np.empty(STACK_SIZE, dtype=np.float32)
-    return stack_node, stack_tn, stack_tf
-
-
 @functools.cache
 def _body(order: int) -> Any:
     """Return the per-chunk body for one child order (a compile-time constant)."""
@@ -103,31 +91,16 @@ def _body(order: int) -> Any:
         node_i = kd.node_i
         n_overflowed = 0
         for r in range(begin, end):
-            overflowed = 0
-            n_steps = 0
-            n_nodes = 0
-            n_leaves = 0
-            n_empty = 0
-            n_prim = 0
-            peak = 0
-            n_bytes = 0
+            overflowed = n_steps = n_nodes = n_leaves = n_empty = n_prim = peak = n_bytes = 0
             (
-                valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                valid, ox, oy, oz, ix, iy, iz, _nx, _ny, _nz, fx, fy, fz,
                 kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-            ) = ray_prologue(origin, direction, tmin, tmax, r, kd.root_box)  # fmt: skip
-            best_prim = -1
-            best_u = ZERO32
-            best_v = ZERO32
+                _box_lo, box_hi, entry, best_prim, best_u, best_v,
+            ) = ray_start(origin, direction, tmin, tmax, r, kd.root_box)  # fmt: skip
             if valid:
-                box_lo = t_lo - pad
-                box_hi = t_hit + pad
-                root_box = kd.root_box
-                tn = root_entry(
-                    root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, box_lo, box_hi
+                tn, tf = root_segment(
+                    kd.root_box, ox, oy, oz, ix, iy, iz, fx, fy, fz, entry, box_hi
                 )
-                tf = ray_box_exit(ox, oy, oz, ix, iy, iz, root_box[fx], root_box[fy], root_box[fz])
-                if box_hi < tf:
-                    tf = box_hi
                 node = 0
                 sp = 0
                 done = tn == INF32
@@ -163,20 +136,17 @@ def _body(order: int) -> Any:
                                     first_far = o_a > split
                                 else:
                                     first_far = o_a < split
+                            # Push one child with its segment, go on into the other.
                             if first_far:
-                                stack_node[sp] = near
-                                stack_tn[sp] = tn
-                                stack_tf[sp] = near_tf
-                                sp += 1
-                                node = far
-                                tn = far_tn
+                                pushed, pushed_tn, pushed_tf = near, tn, near_tf
+                                node, tn = far, far_tn
                             else:
-                                stack_node[sp] = far
-                                stack_tn[sp] = far_tn
-                                stack_tf[sp] = tf
-                                sp += 1
-                                node = near
-                                tf = near_tf
+                                pushed, pushed_tn, pushed_tf = far, far_tn, tf
+                                node, tf = near, near_tf
+                            stack_node[sp] = pushed
+                            stack_tn[sp] = pushed_tn
+                            stack_tf[sp] = pushed_tf
+                            sp += 1
                             continue
                         if near_needed:
                             node = near
@@ -187,22 +157,14 @@ def _body(order: int) -> Any:
                             tn = far_tn
                             continue
                     else:
-                        leaf = bits >> 2
-                        first = kd.leaf_first[leaf]
-                        count = kd.leaf_count[leaf]
-                        if with_stats:
-                            n_leaves += 1
-                            if count == 0:
-                                n_empty += 1
-                            n_bytes += _PRIM_BYTES * count
-                        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                            kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
-                            kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                            query == QUERY_ANY,
+                        (
+                            t_hit, best_prim, best_u, best_v, box_hi,
+                            n_leaves, n_empty, n_prim, n_bytes,
+                        ) = leaf_hits(
+                            kd, bits >> 2, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
+                            pad, best_prim, best_u, best_v, query == QUERY_ANY,
+                            n_leaves, n_empty, n_prim, n_bytes, with_stats,
                         )  # fmt: skip
-                        box_hi = t_hit + pad
-                        if with_stats:
-                            n_prim += tested
                         if query == QUERY_ANY and best_prim >= 0:
                             break
                     # Pop the next entry that begins in front of the closest hit.
@@ -220,22 +182,14 @@ def _body(order: int) -> Any:
                             done = False
                             break
             if with_stats:
-                counters[r, Counter.STEPS] = n_steps
-                counters[r, Counter.NODES] = n_nodes
-                counters[r, Counter.LEAVES] = n_leaves
-                counters[r, Counter.EMPTY_LEAVES] = n_empty
-                counters[r, Counter.BOX_TESTS] = 1 if valid else 0
-                counters[r, Counter.PRIM_TESTS] = n_prim
-                counters[r, Counter.STACK_PEAK] = peak
-                counters[r, Counter.BYTES] = n_bytes
+                # The scene box is the one box test.
+                store_counts(counters, r, n_steps, n_nodes, int(valid), n_prim, peak, n_bytes)
+                store_leaf_counts(counters, r, n_leaves, n_empty, 0)
             store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
             n_overflowed += overflowed
         return n_overflowed
 
     return cpu_inline(trace_rays_py)
-
-
-make_scratch = cpu_inline(make_scratch_py)
 
 
 @functools.cache

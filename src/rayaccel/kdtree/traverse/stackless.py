@@ -39,7 +39,7 @@ skipped, as the stack skips such entries.
     crossing are not on the walk, and a triangle touching that edge may be listed
     only there (or only beyond a null rope on the scene boundary): there the walk
     visits the leaves ``kdtree.stack`` visits for a window of a few pads around the
-    exit, by kd-restart (:func:`window_walk`), then goes on by the rope. It stops on
+    exit, by kd-restart (:func:`trail_walk`), then goes on by the rope. It stops on
     a null rope, once the next cell begins beyond the closest hit (plus the pad) or
     beyond the end of the segment (a cell beginning exactly there is still visited),
     or at the first hit of an any-hit query. A ray lying in a split plane follows the
@@ -55,26 +55,23 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from rayaccel._jit import cpu_inline
-from rayaccel.counters import Counter
 from rayaccel.dtypes import FloatArray, IntArray
-from rayaccel.kdtree.layouts.kdtree import (
-    NODE_BYTES,
-    REF_BYTES,
-    STACK_SIZE,
-    TRIANGLE_BYTES,
-    KdTraceLayout,
+from rayaccel.kdtree.layouts.kdtree import NODE_BYTES, KdTraceLayout
+from rayaccel.kdtree.traverse.common import (
+    descend,
+    leaf_hits,
+    next_pending,
+    root_segment,
+    split_segments,
+    store_leaf_counts,
 )
-from rayaccel.kdtree.traverse.common import descend, split_segments
-from rayaccel.kernels.aabb import ray_box_exit
+from rayaccel.kdtree.traverse.common import make_scratch as make_scratch
 from rayaccel.queries import QUERY_ANY
-from rayaccel.trace.leaf import intersect_leaf
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels
-from rayaccel.trace.skeleton import store_hit
+from rayaccel.trace.skeleton import store_backtracks, store_counts, store_hit
 
 INF32 = np.float32(np.inf)
-ZERO32 = np.float32(0.0)
-_PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
 _BOX_BYTES = 24
 
 METHOD_RESTART = 0
@@ -170,7 +167,7 @@ def rope_exit_py(box, link, leaf, ox, oy, oz, ix, iy, iz, fx, fy, fz, pad):
     its rope (-1: the scene boundary). ``corner`` is True when the ray leaves through
     an edge or a corner within the culling pad: two or more faces within ``2·pad`` of
     the nearest, one of them with a rope, so cells around it that the ray touches
-    without crossing may hold a triangle touching that edge (:func:`window_walk`).
+    without crossing may hold a triangle touching that edge (:func:`trail_walk`).
     """
     t_x = (box[leaf, fx] - ox) * ix
     t_y = (box[leaf, fy] - oy) * iy
@@ -209,36 +206,53 @@ def rope_exit_py(box, link, leaf, ox, oy, oz, ix, iy, iz, fx, fy, fz, pad):
 rope_exit = cpu_inline(rope_exit_py)
 
 
-def window_walk_py(
-    kd, t0, t1, ox, oy, oz, ix, iy, iz, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz,
-    t_lo, t_hit, pad, best_prim, best_u, best_v, stop_at_first,
+def trail_walk_py(
+    kd, method, ring, size, t_entry, t_exit, box_ray, tri_ray, t_lo, t_hit, pad,
+    best_prim, best_u, best_v, stop_at_first, with_stats,
 ):  # fmt: skip
-    """Visit every leaf ``kdtree.stack`` visits for the segment ``[t0, t1]`` (kd-restart).
+    """Visit the leaves ``kdtree.stack`` visits for the segment ``[t_entry, t_exit]``.
 
-    The rope walk's answer to an edge or a corner: the same padded segments and trail
-    as ``METHOD_RESTART`` over a window of a few pads, so every cell the ray touches
-    there (within the pad) is tested. Returns ``(t_hit, prim, u, v, nodes, leaves,
-    empty leaves, triangle tests, bytes)``.
+    The walk of ``METHOD_RESTART``, ``METHOD_BACKTRACK`` and ``METHOD_SHORT_STACK``
+    (``method``, a compile-time constant; see the module docstring): descend by the
+    restart trail, test the leaf, take the deepest pending level and find its subtree
+    again. ``ring`` is the short stack's ring (node, segment start, segment end) of
+    ``size`` entries, unused by the other methods. Also the rope walk's answer to an
+    edge or a corner (:func:`rope_walk_py`): kd-restart over a window of a few pads, so
+    every cell the ray touches there (within the pad) is tested. ``box_ray`` is the
+    ray's ``(ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz)`` and ``tri_ray`` its
+    ``(okx, oky, okz, kx, ky, kz, Sx, Sy, Sz)`` (:func:`rayaccel.trace.ray_setup.ray_start`;
+    as tuples, since a call of more than 30 arguments compiles to a ``*args`` call that
+    numba cannot inline). Returns ``(t_hit, prim, u, v, nodes, leaves, empty leaves,
+    triangle tests, restarts, backtracks, stack peak, bytes)``, the counters 0 unless
+    ``with_stats``.
     """
+    ring_node, ring_tn, ring_tf = ring
+    ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz = box_ray
+    okx, oky, okz, kx, ky, kz, Sx, Sy, Sz = tri_ray
     node_f = kd.node_f
     node_i = kd.node_i
-    n_nodes = 0
-    n_leaves = 0
-    n_empty = 0
-    n_prim = 0
-    n_bytes = 0
+    n_nodes = n_leaves = n_empty = n_prim = n_restarts = n_back = peak = n_bytes = 0
     box_hi = t_hit + pad
     trail = np.int64(0)
     branch = np.int64(0)
     node = 0
     level = 0
-    tn = t0
-    tf = t1
+    tn = t_entry
+    tf = t_exit
+    n_ring = 0
+    head = 0
+    push_node = 0
+    push_level = 0
+    push_tn = t_entry
+    push_tf = t_exit
+    push_set = False
     while True:
+        # ---- descend from (node, level, [tn, tf]) by the trail
         pruned = False
         while True:
-            n_nodes += 1
-            n_bytes += NODE_BYTES
+            if with_stats:
+                n_nodes += 1
+                n_bytes += NODE_BYTES
             if tn > box_hi:
                 pruned = True
                 break
@@ -250,11 +264,27 @@ def window_walk_py(
                 bits, node_f[node, 0], tn, tf, pad, ox, oy, oz, ix, iy, iz
             )
             if near_needed and far_needed:
+                if method == METHOD_SHORT_STACK and not push_set:
+                    # The push-down root: the first node with two children.
+                    push_set = True
+                    push_node = node
+                    push_level = level
+                    push_tn = tn
+                    push_tf = tf
                 if (trail >> level) & 1:
                     node = far
                     tn = far_tn
                 else:
                     branch |= np.int64(1) << level
+                    if method == METHOD_SHORT_STACK:
+                        ring_node[head] = far
+                        ring_tn[head] = far_tn
+                        ring_tf[head] = tf
+                        head = head + 1 if head + 1 < size else 0
+                        if n_ring < size:
+                            n_ring += 1
+                        if with_stats:
+                            peak = max(peak, n_ring)
                     node = near
                     tf = near_tf
             elif near_needed:
@@ -268,48 +298,80 @@ def window_walk_py(
                 break
             level += 1
         if not pruned:
-            leaf = node_i[node, 1] >> 2
-            first = kd.leaf_first[leaf]
-            count = kd.leaf_count[leaf]
-            n_leaves += 1
-            if count == 0:
-                n_empty += 1
-            n_bytes += _PRIM_BYTES * count
-            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
-                kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,
+            t_hit, best_prim, best_u, best_v, box_hi, n_leaves, n_empty, n_prim, n_bytes = (
+                leaf_hits(
+                    kd, node_i[node, 1] >> 2, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo,
+                    t_hit, pad, best_prim, best_u, best_v, stop_at_first,
+                    n_leaves, n_empty, n_prim, n_bytes, with_stats,
+                )
             )  # fmt: skip
-            box_hi = t_hit + pad
-            n_prim += tested
             if stop_at_first and best_prim >= 0:
                 break
+        # ---- pop: the deepest level whose second child is pending
         if branch == 0:
             break
-        k = level - 1
-        while not (branch >> k) & 1:
-            k -= 1
-        branch &= ~(np.int64(1) << k)
-        trail = (trail & ((np.int64(1) << k) - 1)) | (np.int64(1) << k)
-        node = 0
-        level = 0
-        tn = t0
-        tf = t1
-    return t_hit, best_prim, best_u, best_v, n_nodes, n_leaves, n_empty, n_prim, n_bytes
+        trail, branch, k = next_pending(trail, branch, level)
+        if method == METHOD_SHORT_STACK and n_ring > 0:
+            head = head - 1 if head > 0 else size - 1
+            n_ring -= 1
+            node = ring_node[head]
+            tn = ring_tn[head]
+            tf = ring_tf[head]
+            level = k + 1
+        elif method == METHOD_BACKTRACK:
+            # Walk up to the level-k node; its segment from its box.
+            while level > k:
+                node = kd.link[node]
+                level -= 1
+                if with_stats:
+                    n_back += 1
+                    n_bytes += _BOX_BYTES
+            tn = box_enter(
+                kd.node_box, node, ox, oy, oz, ix, iy, iz,
+                nx, ny, nz, fx, fy, fz, t_entry, t_exit, pad,
+            )  # fmt: skip
+            tf, _a = box_exit(kd.node_box, node, ox, oy, oz, ix, iy, iz, fx, fy, fz)
+            tf = tf + pad
+            if t_exit < tf:
+                tf = t_exit
+            if with_stats:
+                n_restarts += 1
+        else:
+            if method == METHOD_SHORT_STACK:
+                node = push_node
+                level = push_level
+                tn = push_tn
+                tf = push_tf
+            else:
+                node = 0
+                level = 0
+                tn = t_entry
+                tf = t_exit
+            if with_stats:
+                n_restarts += 1
+    return (
+        t_hit, best_prim, best_u, best_v, n_nodes, n_leaves, n_empty, n_prim, n_restarts,
+        n_back, peak, n_bytes,
+    )  # fmt: skip
 
 
-window_walk = cpu_inline(window_walk_py)
+trail_walk = cpu_inline(trail_walk_py)
 
 
 def rope_walk_py(
-    kd, t_entry, t_exit, ox, oy, oz, ix, iy, iz, fx, fy, fz,
-    okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+    kd, ring, t_entry, t_exit, box_ray, tri_ray, t_lo, t_hit, pad,
     best_prim, best_u, best_v, stop_at_first, n_leaf_total,
 ):  # fmt: skip
     """Walk the leaves along the ray by their ropes (Popov et al. 2007); see the module docstring.
 
+    ``ring``, ``box_ray`` and ``tri_ray`` as for :func:`trail_walk_py` (the windows'
+    kd-restart leaves the ring unused).
+
     Returns ``(t_hit, prim, u, v, overflowed, nodes, leaves, empty leaves, triangle
     tests, rope steps, bytes)``.
     """
+    ox, oy, oz, ix, iy, iz, _nx, _ny, _nz, fx, fy, fz = box_ray
+    okx, oky, okz, kx, ky, kz, Sx, Sy, Sz = tri_ray
     n_nodes = 0
     n_leaves = 0
     n_empty = 0
@@ -336,18 +398,14 @@ def rope_walk_py(
             n_nodes += n_desc
             n_bytes += NODE_BYTES * n_desc
             leaf = kd.node_i[leaf_node, 1] >> 2
-            first = kd.leaf_first[leaf]
-            count = kd.leaf_count[leaf]
-            n_leaves += 1
-            if count == 0:
-                n_empty += 1
-            n_bytes += _PRIM_BYTES * count + _BOX_BYTES
-            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
-                kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,
+            t_hit, best_prim, best_u, best_v, box_hi, n_leaves, n_empty, n_prim, n_bytes = (
+                leaf_hits(
+                    kd, leaf, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                    best_prim, best_u, best_v, stop_at_first, n_leaves, n_empty, n_prim,
+                    n_bytes, True,
+                )
             )  # fmt: skip
-            box_hi = t_hit + pad
-            n_prim += tested
+            n_bytes += _BOX_BYTES
             if stop_at_first and best_prim >= 0:
                 finished = True
                 break
@@ -369,10 +427,10 @@ def rope_walk_py(
                 window_end = w1
                 (
                     t_hit, best_prim, best_u, best_v, w_nodes, w_leaves, w_empty, w_prim,
-                    w_bytes,
-                ) = window_walk(
-                    kd, w0, w1, ox, oy, oz, ix, iy, iz, okx, oky, okz, kx, ky, kz,
-                    Sx, Sy, Sz, t_lo, t_hit, pad, best_prim, best_u, best_v, stop_at_first,
+                    _w_restarts, _w_back, _w_peak, w_bytes,
+                ) = trail_walk(
+                    kd, METHOD_RESTART, ring, 0, w0, w1, box_ray, tri_ray, t_lo, t_hit, pad,
+                    best_prim, best_u, best_v, stop_at_first, True,
                 )  # fmt: skip
                 box_hi = t_hit + pad
                 n_nodes += w_nodes
@@ -412,17 +470,6 @@ def rope_walk_py(
 rope_walk = cpu_inline(rope_walk_py)
 
 
-def make_scratch_py(kd):
-    """Return one worker's short-stack ring (node, segment start and end), at its largest size."""
-    ring_node = np.empty(STACK_SIZE, dtype=np.int32)
-    ring_tn = np.empty(STACK_SIZE, dtype=np.float32)
-    ring_tf = np.empty(STACK_SIZE, dtype=np.float32)
-    return ring_node, ring_tn, ring_tf
-
-
-make_scratch = cpu_inline(make_scratch_py)
-
-
 @functools.cache
 def _body(method: int) -> Any:
     """Return the per-chunk body of one method."""
@@ -432,196 +479,47 @@ def _body(method: int) -> Any:
         hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
     ):  # fmt: skip
         _ = method
-        ring_node, ring_tn, ring_tf = scratch
         size = np.int64(kd.ring_size[0])
-        node_f = kd.node_f
-        node_i = kd.node_i
         n_leaf_total = kd.leaf_first.shape[0]
         n_overflowed = 0
         for r in range(begin, end):
-            overflowed = 0
-            n_steps = 0
-            n_nodes = 0
-            n_leaves = 0
-            n_empty = 0
-            n_prim = 0
-            n_restarts = 0
-            n_back = 0
-            n_rope = 0
-            peak = 0
-            n_bytes = 0
+            overflowed = n_steps = n_nodes = n_leaves = n_empty = n_prim = n_restarts = 0
+            n_back = n_rope = peak = n_bytes = 0
             (
                 valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
                 kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-            ) = ray_prologue(origin, direction, tmin, tmax, r, kd.root_box)  # fmt: skip
-            best_prim = -1
-            best_u = ZERO32
-            best_v = ZERO32
+                _box_lo, box_hi, entry, best_prim, best_u, best_v,
+            ) = ray_start(origin, direction, tmin, tmax, r, kd.root_box)  # fmt: skip
             if valid:
-                box_lo = t_lo - pad
-                box_hi = t_hit + pad
-                root_box = kd.root_box
-                t_entry = root_entry(
-                    root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, box_lo, box_hi
+                t_entry, t_exit = root_segment(
+                    kd.root_box, ox, oy, oz, ix, iy, iz, fx, fy, fz, entry, box_hi
                 )
-                t_exit = ray_box_exit(
-                    ox, oy, oz, ix, iy, iz, root_box[fx], root_box[fy], root_box[fz]
-                )
-                if box_hi < t_exit:
-                    t_exit = box_hi
+                box_ray = (ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz)
+                tri_ray = (okx, oky, okz, kx, ky, kz, Sx, Sy, Sz)
                 if method == METHOD_ROPES:
                     (
                         t_hit, best_prim, best_u, best_v, overflowed, n_nodes, n_leaves,
                         n_empty, n_prim, n_rope, n_bytes,
                     ) = rope_walk(
-                        kd, t_entry, t_exit, ox, oy, oz, ix, iy, iz, fx, fy, fz,
-                        okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                        kd, scratch, t_entry, t_exit, box_ray, tri_ray, t_lo, t_hit, pad,
                         best_prim, best_u, best_v, query == QUERY_ANY, n_leaf_total,
                     )  # fmt: skip
                     n_steps = n_nodes
                 elif t_entry != INF32:
-                    trail = 0
-                    branch = 0
-                    node = 0
-                    level = 0
-                    tn = t_entry
-                    tf = t_exit
-                    n_ring = 0
-                    head = 0
-                    push_node = 0
-                    push_level = 0
-                    push_tn = t_entry
-                    push_tf = t_exit
-                    push_set = False
-                    while True:
-                        # ---- descend from (node, level, [tn, tf]) by the trail
-                        pruned = False
-                        while True:
-                            if with_stats:
-                                n_steps += 1
-                                n_nodes += 1
-                                n_bytes += NODE_BYTES
-                            if tn > box_hi:
-                                pruned = True
-                                break
-                            bits = node_i[node, 1]
-                            axis = bits & 3
-                            if axis == 3:
-                                break
-                            near, far, near_needed, far_needed, near_tf, far_tn = split_segments(
-                                bits, node_f[node, 0], tn, tf, pad, ox, oy, oz, ix, iy, iz
-                            )
-                            if near_needed and far_needed:
-                                if method == METHOD_SHORT_STACK and not push_set:
-                                    # The push-down root: the first node with two children.
-                                    push_set = True
-                                    push_node = node
-                                    push_level = level
-                                    push_tn = tn
-                                    push_tf = tf
-                                if (trail >> level) & 1:
-                                    node = far
-                                    tn = far_tn
-                                else:
-                                    branch |= np.int64(1) << level
-                                    if method == METHOD_SHORT_STACK:
-                                        ring_node[head] = far
-                                        ring_tn[head] = far_tn
-                                        ring_tf[head] = tf
-                                        head = head + 1 if head + 1 < size else 0
-                                        if n_ring < size:
-                                            n_ring += 1
-                                        if with_stats:
-                                            peak = max(peak, n_ring)
-                                    node = near
-                                    tf = near_tf
-                            elif near_needed:
-                                node = near
-                                tf = near_tf
-                            elif far_needed:
-                                node = far
-                                tn = far_tn
-                            else:
-                                pruned = True
-                                break
-                            level += 1
-                        if not pruned:
-                            leaf = node_i[node, 1] >> 2
-                            first = kd.leaf_first[leaf]
-                            count = kd.leaf_count[leaf]
-                            if with_stats:
-                                n_leaves += 1
-                                if count == 0:
-                                    n_empty += 1
-                                n_bytes += _PRIM_BYTES * count
-                            t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-                                kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
-                                kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v,
-                                query == QUERY_ANY,
-                            )  # fmt: skip
-                            box_hi = t_hit + pad
-                            if with_stats:
-                                n_prim += tested
-                            if query == QUERY_ANY and best_prim >= 0:
-                                break
-                        # ---- pop: the deepest level whose second child is pending
-                        if branch == 0:
-                            break
-                        k = level - 1
-                        while not (branch >> k) & 1:
-                            k -= 1
-                        branch &= ~(np.int64(1) << k)
-                        trail = (trail & ((np.int64(1) << k) - 1)) | (np.int64(1) << k)
-                        if method == METHOD_SHORT_STACK and n_ring > 0:
-                            head = head - 1 if head > 0 else size - 1
-                            n_ring -= 1
-                            node = ring_node[head]
-                            tn = ring_tn[head]
-                            tf = ring_tf[head]
-                            level = k + 1
-                        elif method == METHOD_BACKTRACK:
-                            # Walk up to the level-k node; its segment from its box.
-                            while level > k:
-                                node = kd.link[node]
-                                level -= 1
-                                if with_stats:
-                                    n_back += 1
-                                    n_bytes += _BOX_BYTES
-                            tn = box_enter(
-                                kd.node_box, node, ox, oy, oz, ix, iy, iz,
-                                nx, ny, nz, fx, fy, fz, t_entry, t_exit, pad,
-                            )  # fmt: skip
-                            tf, _a = box_exit(kd.node_box, node, ox, oy, oz, ix, iy, iz, fx, fy, fz)
-                            tf = tf + pad
-                            if t_exit < tf:
-                                tf = t_exit
-                            if with_stats:
-                                n_restarts += 1
-                        else:
-                            if method == METHOD_SHORT_STACK:
-                                node = push_node
-                                level = push_level
-                                tn = push_tn
-                                tf = push_tf
-                            else:
-                                node = 0
-                                level = 0
-                                tn = t_entry
-                                tf = t_exit
-                            if with_stats:
-                                n_restarts += 1
+                    (
+                        t_hit, best_prim, best_u, best_v, n_nodes, n_leaves, n_empty, n_prim,
+                        n_restarts, n_back, peak, n_bytes,
+                    ) = trail_walk(
+                        kd, method, scratch, size, t_entry, t_exit, box_ray, tri_ray,
+                        t_lo, t_hit, pad, best_prim, best_u, best_v, query == QUERY_ANY,
+                        with_stats,
+                    )  # fmt: skip
+                    n_steps = n_nodes
             if with_stats:
-                counters[r, Counter.STEPS] = n_steps
-                counters[r, Counter.NODES] = n_nodes
-                counters[r, Counter.LEAVES] = n_leaves
-                counters[r, Counter.EMPTY_LEAVES] = n_empty
-                counters[r, Counter.BOX_TESTS] = 1 if valid else 0
-                counters[r, Counter.PRIM_TESTS] = n_prim
-                counters[r, Counter.STACK_PEAK] = peak
-                counters[r, Counter.RESTARTS] = n_restarts
-                counters[r, Counter.BACKTRACKS] = n_back
-                counters[r, Counter.ROPE_STEPS] = n_rope
-                counters[r, Counter.BYTES] = n_bytes
+                # The scene box is the one box test.
+                store_counts(counters, r, n_steps, n_nodes, int(valid), n_prim, peak, n_bytes)
+                store_leaf_counts(counters, r, n_leaves, n_empty, n_rope)
+                store_backtracks(counters, r, n_restarts, n_back, 0, (0, 0, 0, 0))
             store_hit(hit_t, hit_prim, hit_u, hit_v, r, t_hit, best_prim, best_u, best_v)
             n_overflowed += overflowed
         return n_overflowed
