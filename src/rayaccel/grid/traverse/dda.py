@@ -67,7 +67,6 @@ from rayaccel.grid.layouts.uniform import (
 from rayaccel.grid.traverse.walk import (
     HIT_BEFORE_EXIT,
     MOVED,
-    axis_steps,
     distance_box,
     enter_lattice,
     exit_plane,
@@ -76,16 +75,16 @@ from rayaccel.grid.traverse.walk import (
     make_mailbox,
     next_cell,
     store_walk_counters,
+    walk_start,
 )
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
 from rayaccel.trace.skeleton import store_hit
 
 INF32 = np.float32(np.inf)
-ZERO32 = np.float32(0.0)
 MAX_MAILBOX = 64
 _CELL_BYTES = 8
 _PRIM_BYTES = 40
@@ -143,157 +142,136 @@ def trace_body(skip: bool, two_level: bool) -> Any:
         vy = grid.inv_size[1]
         vz = grid.inv_size[2]
         for r in range(begin, end):
-            n_steps = 0
-            n_cells = 0
-            n_empty = 0
-            n_prim = 0
-            n_mailbox = 0
-            n_vertical = 0
-            n_bytes = 0
+            n_steps = n_cells = n_empty = n_prim = n_mailbox = n_vertical = n_bytes = 0
             (
-                valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+                _valid, ox, oy, oz, ix, iy, iz, _nx, _ny, _nz, _fx, _fy, _fz,
                 kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-            ) = ray_prologue(origin, direction, tmin, tmax, r, grid.box)  # fmt: skip
-            best_prim = -1
-            best_u = ZERO32
-            best_v = ZERO32
-            if valid:
-                t_start = root_entry(
-                    grid.box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                    t_lo - pad, t_hit + pad,
+                _box_lo, _box_hi, t_start, best_prim, best_u, best_v,
+            ) = ray_start(origin, direction, tmin, tmax, r, grid.box)  # fmt: skip
+            if t_start != INF32:
+                dx, dy, dz, step_x, step_y, step_z, slot = walk_start(direction, r, mailbox, n_mail)
+                cx, cy, cz, tnx, tny, tnz = enter_lattice(
+                    t_start, ox, oy, oz, dx, dy, dz, ix, iy, iz, step_x, step_y, step_z,
+                    lox, loy, loz, sx, sy, sz, vx, vy, vz, rx, ry, rz,
                 )  # fmt: skip
-                if t_start != INF32:
-                    dx = direction[r, 0]
-                    dy = direction[r, 1]
-                    dz = direction[r, 2]
-                    for m in range(n_mail):
-                        mailbox[m] = -1
-                    slot = 0
-                    step_x, step_y, step_z = axis_steps(dx, dy, dz)
-                    cx, cy, cz, tnx, tny, tnz = enter_lattice(
-                        t_start, ox, oy, oz, dx, dy, dz, ix, iy, iz, step_x, step_y, step_z,
-                        lox, loy, loz, sx, sy, sz, vx, vy, vz, rx, ry, rz,
-                    )  # fmt: skip
-                    # Where the ray entered the current (top) cell.
-                    t_enter = t_start
-                    while True:
-                        cell = cx + rx * (cy + ry * cz)
-                        first = cell_start[cell]
-                        last = cell_start[cell + 1]
-                        if with_stats:
-                            n_steps += 1
-                            n_bytes += _CELL_BYTES
-                            if first == last:
+                # Where the ray entered the current (top) cell.
+                t_enter = t_start
+                while True:
+                    cell = cx + rx * (cy + ry * cz)
+                    first = cell_start[cell]
+                    last = cell_start[cell + 1]
+                    if with_stats:
+                        n_steps += 1
+                        n_bytes += _CELL_BYTES
+                        if first == last:
+                            n_cells += 1
+                            n_empty += 1
+                        elif two_level:
+                            n_vertical += 1
+                        else:
+                            n_cells += 1
+                    if skip and first == last and skip_kind != SKIP_NONE:
+                        # Empty cell: leave the empty box around it in one jump.
+                        if skip_kind == SKIP_DISTANCE:
+                            k = np.int32(grid.skip[cell, 0]) - 1
+                            bx0, by0, bz0, bx1, by1, bz1 = distance_box(cx, cy, cz, k, rx, ry, rz)
+                        elif skip_kind == SKIP_MACRO:
+                            bx0 = np.int32(grid.skip[cell, 0])
+                            by0 = np.int32(grid.skip[cell, 1])
+                            bz0 = np.int32(grid.skip[cell, 2])
+                            bx1 = np.int32(grid.skip[cell, 3])
+                            by1 = np.int32(grid.skip[cell, 4])
+                            bz1 = np.int32(grid.skip[cell, 5])
+                        else:
+                            # Mip-map: climb while the block one level up is empty.
+                            bits = np.int32(grid.skip[cell, 0]) & 0xFFFF
+                            m = 0
+                            while m < 15 and not (bits >> (m + 1)) & 1:
+                                m += 1
+                            if with_stats:
+                                n_vertical += m
+                            bx0 = (cx >> m) << m
+                            by0 = (cy >> m) << m
+                            bz0 = (cz >> m) << m
+                            bx1 = min(bx0 + (1 << m) - 1, rx - 1)
+                            by1 = min(by0 + (1 << m) - 1, ry - 1)
+                            bz1 = min(bz0 + (1 << m) - 1, rz - 1)
+                        moved, t_enter, cx, cy, cz = leave_box(
+                            bx0, by0, bz0, bx1, by1, bz1, cx, cy, cz, step_x, step_y,
+                            step_z, grid.lo, grid.size, grid.inv_size, grid.res,
+                            ox, oy, oz, ix, iy, iz, dx, dy, dz, t_hit + pad,
+                        )  # fmt: skip
+                        if not moved:
+                            break
+                        tnx = exit_plane(lox, sx, ox, ix, cx, step_x)
+                        tny = exit_plane(loy, sy, oy, iy, cy, step_y)
+                        tnz = exit_plane(loz, sz, oz, iz, cz, step_z)
+                        continue
+                    if two_level and first != last:
+                        # Descend: a DDA over this top cell's sub-grid from t_enter.
+                        lrx = grid.sub_res[cell, 0]
+                        lry = grid.sub_res[cell, 1]
+                        lrz = grid.sub_res[cell, 2]
+                        lsx = grid.leaf_size[cell, 0]
+                        lsy = grid.leaf_size[cell, 1]
+                        lsz = grid.leaf_size[cell, 2]
+                        tlx = lox + np.float32(cx) * sx
+                        tly = loy + np.float32(cy) * sy
+                        tlz = loz + np.float32(cz) * sz
+                        base = grid.leaf_first[cell]
+                        jx, jy, jz, lnx, lny, lnz = enter_lattice(
+                            t_enter, ox, oy, oz, dx, dy, dz, ix, iy, iz, step_x, step_y,
+                            step_z, tlx, tly, tlz, lsx, lsy, lsz, grid.leaf_inv[cell, 0],
+                            grid.leaf_inv[cell, 1], grid.leaf_inv[cell, 2], lrx, lry, lrz,
+                        )  # fmt: skip
+                        state = MOVED
+                        while state == MOVED:
+                            leaf = base + jx + lrx * (jy + lry * jz)
+                            leaf_first = grid.leaf_start[leaf]
+                            leaf_last = grid.leaf_start[leaf + 1]
+                            if with_stats:
+                                n_steps += 1
                                 n_cells += 1
-                                n_empty += 1
-                            elif two_level:
-                                n_vertical += 1
-                            else:
-                                n_cells += 1
-                        if skip and first == last and skip_kind != SKIP_NONE:
-                            # Empty cell: leave the empty box around it in one jump.
-                            if skip_kind == SKIP_DISTANCE:
-                                k = np.int32(grid.skip[cell, 0]) - 1
-                                bx0, by0, bz0, bx1, by1, bz1 = distance_box(
-                                    cx, cy, cz, k, rx, ry, rz
-                                )
-                            elif skip_kind == SKIP_MACRO:
-                                bx0 = np.int32(grid.skip[cell, 0])
-                                by0 = np.int32(grid.skip[cell, 1])
-                                bz0 = np.int32(grid.skip[cell, 2])
-                                bx1 = np.int32(grid.skip[cell, 3])
-                                by1 = np.int32(grid.skip[cell, 4])
-                                bz1 = np.int32(grid.skip[cell, 5])
-                            else:
-                                # Mip-map: climb while the block one level up is empty.
-                                bits = np.int32(grid.skip[cell, 0]) & 0xFFFF
-                                m = 0
-                                while m < 15 and not (bits >> (m + 1)) & 1:
-                                    m += 1
-                                if with_stats:
-                                    n_vertical += m
-                                bx0 = (cx >> m) << m
-                                by0 = (cy >> m) << m
-                                bz0 = (cz >> m) << m
-                                bx1 = min(bx0 + (1 << m) - 1, rx - 1)
-                                by1 = min(by0 + (1 << m) - 1, ry - 1)
-                                bz1 = min(bz0 + (1 << m) - 1, rz - 1)
-                            moved, t_enter, cx, cy, cz = leave_box(
-                                bx0, by0, bz0, bx1, by1, bz1, cx, cy, cz, step_x, step_y,
-                                step_z, grid.lo, grid.size, grid.inv_size, grid.res,
-                                ox, oy, oz, ix, iy, iz, dx, dy, dz, t_hit + pad,
-                            )  # fmt: skip
-                            if not moved:
-                                break
-                            tnx = exit_plane(lox, sx, ox, ix, cx, step_x)
-                            tny = exit_plane(loy, sy, oy, iy, cy, step_y)
-                            tnz = exit_plane(loz, sz, oz, iz, cz, step_z)
-                            continue
-                        if two_level and first != last:
-                            # Descend: a DDA over this top cell's sub-grid from t_enter.
-                            lrx = grid.sub_res[cell, 0]
-                            lry = grid.sub_res[cell, 1]
-                            lrz = grid.sub_res[cell, 2]
-                            lsx = grid.leaf_size[cell, 0]
-                            lsy = grid.leaf_size[cell, 1]
-                            lsz = grid.leaf_size[cell, 2]
-                            tlx = lox + np.float32(cx) * sx
-                            tly = loy + np.float32(cy) * sy
-                            tlz = loz + np.float32(cz) * sz
-                            base = grid.leaf_first[cell]
-                            jx, jy, jz, lnx, lny, lnz = enter_lattice(
-                                t_enter, ox, oy, oz, dx, dy, dz, ix, iy, iz, step_x, step_y,
-                                step_z, tlx, tly, tlz, lsx, lsy, lsz, grid.leaf_inv[cell, 0],
-                                grid.leaf_inv[cell, 1], grid.leaf_inv[cell, 2], lrx, lry, lrz,
-                            )  # fmt: skip
-                            state = MOVED
-                            while state == MOVED:
-                                leaf = base + jx + lrx * (jy + lry * jz)
-                                leaf_first = grid.leaf_start[leaf]
-                                leaf_last = grid.leaf_start[leaf + 1]
-                                if with_stats:
-                                    n_steps += 1
-                                    n_cells += 1
-                                    n_bytes += _CELL_BYTES
-                                    if leaf_first == leaf_last:
-                                        n_empty += 1
-                                t_hit, best_prim, best_u, best_v, slot, n_prim, n_mailbox = (
-                                    intersect_cell(
-                                        tri, tri_prim, leaf_first, leaf_last, mailbox, n_mail,
-                                        slot, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo,
-                                        t_hit, best_prim, best_u, best_v, n_prim, n_mailbox,
-                                        query == QUERY_ANY,
-                                    )
-                                )  # fmt: skip
-                                if query == QUERY_ANY and best_prim >= 0:
-                                    state = HIT_BEFORE_EXIT
-                                    break
-                                state, _t, jx, jy, jz, lnx, lny, lnz = next_cell(
-                                    jx, jy, jz, lnx, lny, lnz, step_x, step_y, step_z,
-                                    lrx, lry, lrz, tlx, tly, tlz, lsx, lsy, lsz,
-                                    ox, oy, oz, ix, iy, iz, t_hit + pad,
-                                )  # fmt: skip
-                            if state == HIT_BEFORE_EXIT:
-                                # The closest hit lies before this leaf's exit: done.
-                                break
-                        elif not two_level:
+                                n_bytes += _CELL_BYTES
+                                if leaf_first == leaf_last:
+                                    n_empty += 1
                             t_hit, best_prim, best_u, best_v, slot, n_prim, n_mailbox = (
                                 intersect_cell(
-                                    tri, tri_prim, first, last, mailbox, n_mail, slot,
-                                    okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
-                                    best_prim, best_u, best_v, n_prim, n_mailbox,
+                                    tri, tri_prim, leaf_first, leaf_last, mailbox, n_mail,
+                                    slot, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo,
+                                    t_hit, best_prim, best_u, best_v, n_prim, n_mailbox,
                                     query == QUERY_ANY,
                                 )
                             )  # fmt: skip
                             if query == QUERY_ANY and best_prim >= 0:
+                                state = HIT_BEFORE_EXIT
                                 break
-                        # Step to the next cell unless every hit so far lies before it.
-                        state, t_enter, cx, cy, cz, tnx, tny, tnz = next_cell(
-                            cx, cy, cz, tnx, tny, tnz, step_x, step_y, step_z, rx, ry, rz,
-                            lox, loy, loz, sx, sy, sz, ox, oy, oz, ix, iy, iz, t_hit + pad,
-                        )  # fmt: skip
-                        if state != MOVED:
+                            state, _t, jx, jy, jz, lnx, lny, lnz = next_cell(
+                                jx, jy, jz, lnx, lny, lnz, step_x, step_y, step_z,
+                                lrx, lry, lrz, tlx, tly, tlz, lsx, lsy, lsz,
+                                ox, oy, oz, ix, iy, iz, t_hit + pad,
+                            )  # fmt: skip
+                        if state == HIT_BEFORE_EXIT:
+                            # The closest hit lies before this leaf's exit: done.
                             break
+                    elif not two_level:
+                        t_hit, best_prim, best_u, best_v, slot, n_prim, n_mailbox = (
+                            intersect_cell(
+                                tri, tri_prim, first, last, mailbox, n_mail, slot,
+                                okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
+                                best_prim, best_u, best_v, n_prim, n_mailbox,
+                                query == QUERY_ANY,
+                            )
+                        )  # fmt: skip
+                        if query == QUERY_ANY and best_prim >= 0:
+                            break
+                    # Step to the next cell unless every hit so far lies before it.
+                    state, t_enter, cx, cy, cz, tnx, tny, tnz = next_cell(
+                        cx, cy, cz, tnx, tny, tnz, step_x, step_y, step_z, rx, ry, rz,
+                        lox, loy, loz, sx, sy, sz, ox, oy, oz, ix, iy, iz, t_hit + pad,
+                    )  # fmt: skip
+                    if state != MOVED:
+                        break
             if with_stats:
                 store_walk_counters(
                     counters, r, n_steps, n_cells, n_empty, n_prim, n_mailbox, n_vertical,

@@ -29,21 +29,20 @@ from rayaccel.grid.layouts.irregular import IrregularGrid, IrregularTrace, trace
 from rayaccel.grid.layouts.uniform import with_mailbox
 from rayaccel.grid.traverse.walk import (
     INF32,
-    axis_steps,
     intersect_cell,
     leave_box,
     make_mailbox,
     start_cell,
     store_walk_counters,
+    walk_start,
 )
 from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import ray_start
 from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
 from rayaccel.trace.skeleton import store_hit
 
-ZERO32 = np.float32(0.0)
 _CELL_BYTES = 36
 _PRIM_BYTES = 40
 
@@ -57,62 +56,47 @@ def trace_rays_py(
     n_mail = grid.mailbox[0]
     shift = grid.shift[0]
     for r in range(begin, end):
-        n_cells = 0
-        n_empty = 0
-        n_prim = 0
-        n_mailbox = 0
+        n_cells = n_empty = n_prim = n_mailbox = 0
         (
-            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
+            _valid, ox, oy, oz, ix, iy, iz, _nx, _ny, _nz, _fx, _fy, _fz,
             kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-        ) = ray_prologue(origin, direction, tmin, tmax, r, grid.box)  # fmt: skip
-        best_prim = -1
-        best_u = ZERO32
-        best_v = ZERO32
-        if valid:
-            t_start = root_entry(
-                grid.box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz, t_lo - pad, t_hit + pad
-            )
-            if t_start != INF32:
-                dx = direction[r, 0]
-                dy = direction[r, 1]
-                dz = direction[r, 2]
-                for m in range(n_mail):
-                    mailbox[m] = -1
-                slot = 0
-                res = grid.fine_res
-                lo = grid.lo
-                inv = grid.inv_voxel
-                cx = np.int64(start_cell(ox + t_start * dx, lo[0], inv[0], res[0], dx))
-                cy = np.int64(start_cell(oy + t_start * dy, lo[1], inv[1], res[1], dy))
-                cz = np.int64(start_cell(oz + t_start * dz, lo[2], inv[2], res[2], dz))
-                step_x, step_y, step_z = axis_steps(dx, dy, dz)
-                while True:
-                    cell = voxel_cell(
-                        cx, cy, cz, grid.top_res, shift, grid.log_dim, grid.leaf_first,
-                        grid.cell_of_leaf,
-                    )  # fmt: skip
-                    first = grid.cell_start[cell]
-                    last = grid.cell_start[cell + 1]
-                    if with_stats:
-                        n_cells += 1
-                        if first == last:
-                            n_empty += 1
-                    t_hit, best_prim, best_u, best_v, slot, n_prim, n_mailbox = intersect_cell(
-                        grid.tri, grid.tri_prim, first, last, mailbox, n_mail, slot,
-                        okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
-                        best_prim, best_u, best_v, n_prim, n_mailbox, query == QUERY_ANY,
-                    )  # fmt: skip
-                    if query == QUERY_ANY and best_prim >= 0:
-                        break
-                    e_lo = grid.exit_lo
-                    e_hi = grid.exit_hi
-                    moved, _t, cx, cy, cz = leave_box(
-                        e_lo[cell, 0], e_lo[cell, 1], e_lo[cell, 2], e_hi[cell, 0], e_hi[cell, 1],
-                        e_hi[cell, 2], cx, cy, cz, step_x, step_y, step_z, lo, grid.voxel, inv, res,
-                        ox, oy, oz, ix, iy, iz, dx, dy, dz, t_hit + pad,
-                    )  # fmt: skip
-                    if not moved:
-                        break
+            _box_lo, _box_hi, t_start, best_prim, best_u, best_v,
+        ) = ray_start(origin, direction, tmin, tmax, r, grid.box)  # fmt: skip
+        if t_start != INF32:
+            dx, dy, dz, step_x, step_y, step_z, slot = walk_start(direction, r, mailbox, n_mail)
+            res = grid.fine_res
+            lo = grid.lo
+            inv = grid.inv_voxel
+            cx = np.int64(start_cell(ox + t_start * dx, lo[0], inv[0], res[0], dx))
+            cy = np.int64(start_cell(oy + t_start * dy, lo[1], inv[1], res[1], dy))
+            cz = np.int64(start_cell(oz + t_start * dz, lo[2], inv[2], res[2], dz))
+            while True:
+                cell = voxel_cell(
+                    cx, cy, cz, grid.top_res, shift, grid.log_dim, grid.leaf_first,
+                    grid.cell_of_leaf,
+                )  # fmt: skip
+                first = grid.cell_start[cell]
+                last = grid.cell_start[cell + 1]
+                if with_stats:
+                    n_cells += 1
+                    if first == last:
+                        n_empty += 1
+                t_hit, best_prim, best_u, best_v, slot, n_prim, n_mailbox = intersect_cell(
+                    grid.tri, grid.tri_prim, first, last, mailbox, n_mail, slot,
+                    okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
+                    best_prim, best_u, best_v, n_prim, n_mailbox, query == QUERY_ANY,
+                )  # fmt: skip
+                if query == QUERY_ANY and best_prim >= 0:
+                    break
+                e_lo = grid.exit_lo
+                e_hi = grid.exit_hi
+                moved, _t, cx, cy, cz = leave_box(
+                    e_lo[cell, 0], e_lo[cell, 1], e_lo[cell, 2], e_hi[cell, 0], e_hi[cell, 1],
+                    e_hi[cell, 2], cx, cy, cz, step_x, step_y, step_z, lo, grid.voxel, inv, res,
+                    ox, oy, oz, ix, iy, iz, dx, dy, dz, t_hit + pad,
+                )  # fmt: skip
+                if not moved:
+                    break
         if with_stats:
             # One step per cell; no vertical steps.
             n_bytes = n_cells * _CELL_BYTES + n_prim * _PRIM_BYTES

@@ -1,6 +1,7 @@
 """The steps grid walks share: the start cell, a cell's exit plane, leaving a box of cells.
 
-Also the walks' per-worker scratch, the mailbox ring (:func:`make_mailbox`), the test of
+Also the walks' per-worker scratch, the mailbox ring (:func:`make_mailbox`), emptied
+with the direction's axis steps at the start of a walk (:func:`walk_start`), the test of
 a cell's triangles through it (:func:`intersect_cell`), the 3D-DDA's entry into a
 lattice and its step to the next cell (:func:`enter_lattice`, :func:`next_cell`), and the
 store of a walk's counters (:func:`store_walk_counters`).
@@ -24,6 +25,7 @@ import numpy as np
 from rayaccel._jit import cpu_inline
 from rayaccel.counters import Counter
 from rayaccel.kernels.triangle import ray_triangle
+from rayaccel.trace.skeleton import store_counts
 
 INF32 = np.float32(np.inf)
 #: The start cell is biased this fraction of a cell against the direction.
@@ -67,6 +69,24 @@ def axis_steps_py(dx, dy, dz):
         1 if dy > 0 else (-1 if dy < 0 else 0),
         1 if dz > 0 else (-1 if dz < 0 else 0),
     )
+
+
+def walk_start_py(direction, r, mailbox, n_mail):
+    """Return ray ``r``'s direction and axis steps, and empty the first ``n_mail`` mailbox slots.
+
+    Returns ``(dx, dy, dz, step_x, step_y, step_z, slot)``, ``slot`` the mailbox slot
+    the walk writes next (0).
+    """
+    dx = direction[r, 0]
+    dy = direction[r, 1]
+    dz = direction[r, 2]
+    for m in range(n_mail):
+        mailbox[m] = -1
+    step_x, step_y, step_z = axis_steps(dx, dy, dz)
+    return dx, dy, dz, step_x, step_y, step_z, 0
+
+
+walk_start = cpu_inline(walk_start_py)
 
 
 def enter_lattice_py(
@@ -200,13 +220,11 @@ def store_walk_counters_py(
     counters, r, steps, cells, empty, prims, mailbox_hits, vertical, n_bytes
 ):
     """Store a grid walk's counters of ray ``r`` (every grid traversal counts the same ones)."""
-    counters[r, Counter.STEPS] = steps
+    store_counts(counters, r, steps, 0, 0, prims, 0, n_bytes)
     counters[r, Counter.CELLS] = cells
     counters[r, Counter.EMPTY_CELLS] = empty
-    counters[r, Counter.PRIM_TESTS] = prims
     counters[r, Counter.MAILBOX_HITS] = mailbox_hits
     counters[r, Counter.VERTICAL_STEPS] = vertical
-    counters[r, Counter.BYTES] = n_bytes
 
 
 store_walk_counters = cpu_inline(store_walk_counters_py)
