@@ -228,23 +228,16 @@ def cpu_model() -> str:
 def git_sha() -> str | None:
     """Return the git commit of the rayaccel checkout (``+dirty`` if modified), or None."""
     root = Path(__file__).resolve().parents[3]
+
+    def git(*args: str) -> str:
+        run = subprocess.run(
+            ["git", *args], cwd=root, capture_output=True, text=True, timeout=5, check=True
+        )
+        return run.stdout.strip()
+
     try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            timeout=5,
-            check=True,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            timeout=5,
-            check=True,
-        ).stdout.strip()
+        sha = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return None
     return f"{sha}+dirty" if dirty else sha or None
@@ -378,6 +371,19 @@ def scene_label(spec: str) -> str:
     scene, view = split_view(spec)
     stem = scene_stem(scene) if os.sep in scene or Path(scene).suffix else scene
     return stem if view is None else f"{stem}{VIEW_SEPARATOR}{view}"
+
+
+@dataclass(frozen=True)
+class _Cells:
+    """One scene at one thread count: what every system measures, and the reference's rates."""
+
+    mesh: TriangleMesh
+    raysets: Mapping[str, RaySet]
+    references: Mapping[str, _Reference | None]
+    #: ``scene``, ``n_tris`` and ``threads``: the fields every record of these cells has.
+    base: Record
+    #: Mrays/s of the reference peer per ray kind, for the ``ratio_vs_open3d`` fields.
+    rates: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -659,23 +665,21 @@ class _Run:
             kind: reference_hits(mesh, rs, config.validate, config.seed, self.result.notes)
             for kind, rs in raysets.items()
         }
-        base = {"scene": label, "n_tris": mesh.n_triangles}
         for threads in config.thread_counts():
             numba.set_num_threads(threads)
-            reference_rates: dict[str, float] = {}
+            base = {"scene": label, "n_tris": mesh.n_triangles, "threads": threads}
+            cells = _Cells(mesh, raysets, references, base)
             for peer in peers:
-                if self.skip_done(label, peer.name, threads, raysets, reference_rates):
+                if self.skip_done(label, peer.name, threads, raysets, cells.rates):
                     self.ui.advance(len(raysets))
                     continue
-                self.peer(peer, mesh, raysets, references, {**base, "threads": threads},
-                          reference_rates)  # fmt: skip
+                self.peer(peer, cells)
             for builder in config.builder_keys():
                 systems = [f"{builder}+{t}" for t in config.traversal_keys(builder)]
                 if all(self.skip_done(label, s, threads, raysets, {}) for s in systems):
                     self.ui.advance(len(systems) * len(raysets))
                     continue
-                self.ours(builder, mesh, raysets, references, {**base, "threads": threads},
-                          reference_rates)  # fmt: skip
+                self.ours(builder, cells)
 
     def is_done(self, scene: str, system: str, threads: int, kind: str) -> bool:
         """Whether an earlier run finished this cell (:attr:`BenchConfig.done`)."""
@@ -697,6 +701,19 @@ class _Run:
                 rates[kind] = float(earlier["mrays_median"])
         return all(self.is_done(scene, system, threads, kind) for kind in raysets)
 
+    def pending(self, cells: _Cells, system: str) -> Iterator[tuple[str, RaySet]]:
+        """Yield the ray sets of ``system`` an earlier run did not finish, as ``(kind, rayset)``.
+
+        Each cell counts as one progress step: a finished one at once, a yielded one
+        when the caller's loop moves on from it.
+        """
+        scene = cells.base["scene"]
+        for kind, rayset in cells.raysets.items():
+            if not self.is_done(scene, system, cells.base["threads"], kind):
+                self.ui.describe(f"{scene}: {system} {kind}")
+                yield kind, rayset
+            self.ui.advance()
+
     def _validation(self, ref: _Reference | None, mismatches: int | None) -> Record | None:
         if ref is None or mismatches is None:
             return None
@@ -706,16 +723,8 @@ class _Run:
         reference = rates.get(kind)
         return round(mrays / reference, 4) if reference else None
 
-    def peer(
-        self,
-        peer: peers_mod.Peer,
-        mesh: TriangleMesh,
-        raysets: Mapping[str, RaySet],
-        references: Mapping[str, _Reference | None],
-        base: Record,
-        rates: dict[str, float],
-    ) -> None:
-        config = self.config
+    def peer(self, peer: peers_mod.Peer, cells: _Cells) -> None:
+        config, mesh, base = self.config, cells.mesh, cells.base
         peer.set_threads(base["threads"])
         note = peer.threads_note.format(n=base["threads"])
         if note:
@@ -723,19 +732,14 @@ class _Run:
         skip = peer.skip_reason(mesh)
         if skip is not None:
             self.note(f"{base['scene']}: {skip}")
-            for _ in raysets:
-                self.ui.advance()
+            self.ui.advance(len(cells.raysets))
             return
         self.ui.describe(f"{base['scene']}: {peer.name} build")
         peer.build(mesh)  # untimed: first build may load libraries
         build_ms = float(np.median([peer.build(mesh) for _ in range(config.build_repeats)]))
         system = {"system": peer.name, "kind": "peer", "peer": peer.name, "builder": None,
                   "traversal": None, "peer_label": peer.label}  # fmt: skip
-        for kind, rayset in raysets.items():
-            if self.is_done(base["scene"], peer.name, base["threads"], kind):
-                self.ui.advance()
-                continue
-            self.ui.describe(f"{base['scene']}: {peer.name} {kind}")
+        for kind, rayset in self.pending(cells, peer.name):
             rays = peer.limit(rayset.rays)
             prepared = peer.prepare(rays)
             if rayset.query == "any":
@@ -747,7 +751,7 @@ class _Run:
                 def query(p: Any = prepared) -> Any:
                     return peer.intersect(p)
 
-            ref = references.get(kind)
+            ref = cells.references.get(kind)
             mismatches = None
             if ref is not None:
                 sub = peer.prepare(ref.rays)
@@ -768,29 +772,19 @@ class _Run:
                 self.emit({"record": "invalid", **record})
                 self.note(f"{base['scene']}: {peer.name} {kind}: {mismatches} rays differ "
                           f"from the {ref.source} oracle; not timed")  # fmt: skip
-                self.ui.advance()
                 continue
             repeats = min(config.repeats, peer.max_repeats or config.repeats)
             seconds, _ = _timed(query, repeats)
             timing = _timing_fields(rays.n_rays, seconds)
             if peer.name == peers_mod.REFERENCE_PEER:
-                rates[kind] = timing["mrays_median"]
+                cells.rates[kind] = timing["mrays_median"]
                 self.reference_queries[kind] = query
             record.update(timing)
-            record["ratio_vs_open3d"] = self._ratio(rates, kind, timing["mrays_median"])
+            record["ratio_vs_open3d"] = self._ratio(cells.rates, kind, timing["mrays_median"])
             self.emit({"record": "trace", **record})
-            self.ui.advance()
 
-    def ours(
-        self,
-        builder: str,
-        mesh: TriangleMesh,
-        raysets: Mapping[str, RaySet],
-        references: Mapping[str, _Reference | None],
-        base: Record,
-        rates: Mapping[str, float],
-    ) -> None:
-        config = self.config
+    def ours(self, builder: str, cells: _Cells) -> None:
+        config, mesh, base = self.config, cells.mesh, cells.base
         self.ui.describe(f"{base['scene']}: {builder} build")
         options = dict(config.builder_options)
         api.build(mesh, builder, **options)  # untimed: compiles parallel builder paths
@@ -804,17 +798,13 @@ class _Run:
         structure = {key: info.get(key) for key in ("n_nodes", "n_leaves", "depth", "sah", "bytes")}
         build_ms = round(float(np.median(build_times)), 3)
         for traversal in config.traversal_keys(builder):
-            system = {"system": f"{builder}+{traversal}", "kind": "rayaccel", "builder": builder,
+            name = f"{builder}+{traversal}"
+            system = {"system": name, "kind": "rayaccel", "builder": builder,
                       "traversal": traversal, "peer": None, "build_ms": build_ms,
                       **structure}  # fmt: skip
-            for kind, rayset in raysets.items():
-                if self.is_done(base["scene"], f"{builder}+{traversal}", base["threads"], kind):
-                    self.ui.advance()
-                    continue
-                self.ui.describe(f"{base['scene']}: {builder}+{traversal} {kind}")
-                self.measure_ours(accel, traversal, kind, rayset, references.get(kind),
-                                  {**base, **system}, rates)  # fmt: skip
-                self.ui.advance()
+            for kind, rayset in self.pending(cells, name):
+                self.measure_ours(accel, traversal, kind, rayset, cells.references.get(kind),
+                                  {**base, **system}, cells.rates)  # fmt: skip
 
     def measure_ours(
         self,

@@ -485,36 +485,35 @@ class WarpPeer(Peer):
             rays.n_rays,
         )
 
+    def _launch(self, kernel: Any, rays: Any, *dtypes: Any) -> list[np.ndarray]:
+        """Run a kernel of :mod:`~rayaccel.bench.warp_kernels`; return its outputs, one per dtype.
+
+        The kernel takes the mesh and the prepared rays, then one output array of
+        ``n`` values per entry of ``dtypes``.
+        """
+        wp = self._wp
+        origins, directions, tmax, n = self._prepared(rays)
+        outputs = [wp.empty(n, dtype=dtype, device=self.device) for dtype in dtypes]
+        if n:
+            wp.launch(
+                kernel,
+                dim=n,
+                inputs=[self._mesh_wp.id, origins, directions, tmax],
+                outputs=outputs,
+                device=self.device,
+            )
+        return [output.numpy() for output in outputs]
+
     def intersect(self, rays: Any) -> tuple[FloatArray, IntArray]:
         """Closest hits, see :meth:`Peer.intersect`."""
         wp = self._wp
-        origins, directions, tmax, n = self._prepared(rays)
-        t = wp.empty(n, dtype=wp.float32, device=self.device)
-        prim = wp.empty(n, dtype=wp.int32, device=self.device)
-        if n:
-            wp.launch(
-                self._kernels.closest_hits,
-                dim=n,
-                inputs=[self._mesh_wp.id, origins, directions, tmax],
-                outputs=[t, prim],
-                device=self.device,
-            )
-        return t.numpy().astype(REAL), prim.numpy().astype(INDEX)
+        t, prim = self._launch(self._kernels.closest_hits, rays, wp.float32, wp.int32)
+        return t.astype(REAL), prim.astype(INDEX)
 
     def occluded(self, rays: Any) -> BoolArray:
         """Any-hit test, see :meth:`Peer.occluded`."""
-        wp = self._wp
-        origins, directions, tmax, n = self._prepared(rays)
-        hit = wp.empty(n, dtype=wp.int32, device=self.device)
-        if n:
-            wp.launch(
-                self._kernels.any_hits,
-                dim=n,
-                inputs=[self._mesh_wp.id, origins, directions, tmax],
-                outputs=[hit],
-                device=self.device,
-            )
-        occluded: BoolArray = hit.numpy().astype(bool)
+        (hit,) = self._launch(self._kernels.any_hits, rays, self._wp.int32)
+        occluded: BoolArray = hit.astype(bool)
         return occluded
 
 
