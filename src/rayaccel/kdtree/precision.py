@@ -51,7 +51,14 @@ from numba import prange
 from rayaccel._jit import cpu_kernel
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import StructureInvariantError
-from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, MAX_DEPTH, KdTree
+from rayaccel.kdtree.layouts.kdtree import (
+    LEAF_AXIS,
+    MAX_DEPTH,
+    KdTree,
+    new_descent,
+    push_reached_children,
+    start_descent,
+)
 from rayaccel.kernels.overlap import touches
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -69,9 +76,7 @@ def _leaf_pairs(tri, node_split, node_bits, lo, hi, grow, counts, offsets, out_l
     :func:`touches` its cell grown by ``grow``.
     """
     for p in prange(tri.shape[0]):
-        stack = np.empty(MAX_DEPTH + 2, dtype=np.int32)
-        s_lo = np.empty((MAX_DEPTH + 2, 3), dtype=np.float64)
-        s_hi = np.empty((MAX_DEPTH + 2, 3), dtype=np.float64)
+        stack, s_lo, s_hi = new_descent(MAX_DEPTH, lo)
         c_lo = np.empty(3, dtype=np.float64)
         c_hi = np.empty(3, dtype=np.float64)
         t_lo = np.empty(3, dtype=np.float64)
@@ -79,10 +84,7 @@ def _leaf_pairs(tri, node_split, node_bits, lo, hi, grow, counts, offsets, out_l
         for a in range(3):
             t_lo[a] = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a]) - grow
             t_hi[a] = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a]) + grow
-            s_lo[0, a] = lo[a]
-            s_hi[0, a] = hi[a]
-        stack[0] = 0
-        sp = 1
+        sp = start_descent(stack, s_lo, s_hi, lo, hi)
         n = 0
         while sp > 0:
             sp -= 1
@@ -98,23 +100,11 @@ def _leaf_pairs(tri, node_split, node_bits, lo, hi, grow, counts, offsets, out_l
                         out_leaf[offsets[p] + n] = bits >> 2
                     n += 1
                 continue
-            child = bits >> 2
             split = np.float64(node_split[node])
-            b_lo0, b_lo1, b_lo2 = s_lo[sp, 0], s_lo[sp, 1], s_lo[sp, 2]
-            b_hi0, b_hi1, b_hi2 = s_hi[sp, 0], s_hi[sp, 1], s_hi[sp, 2]
-            for side in range(2):
-                if side == 0 and not t_hi[axis] >= split:
-                    continue
-                if side == 1 and not t_lo[axis] <= split:
-                    continue
-                stack[sp] = child + 1 - side
-                s_lo[sp, 0], s_lo[sp, 1], s_lo[sp, 2] = b_lo0, b_lo1, b_lo2
-                s_hi[sp, 0], s_hi[sp, 1], s_hi[sp, 2] = b_hi0, b_hi1, b_hi2
-                if side == 0:
-                    s_lo[sp, axis] = split
-                else:
-                    s_hi[sp, axis] = split
-                sp += 1
+            sp = push_reached_children(
+                stack, s_lo, s_hi, sp, bits >> 2, axis, split, t_lo[axis] <= split,
+                t_hi[axis] >= split,
+            )  # fmt: skip
         if not fill:
             counts[p] = n
 

@@ -79,13 +79,10 @@ def ray_box_entry_py(
     float32
         ``max(tmin, entry)`` when ``entry <= exit`` within the interval, else ``inf``.
     """
-    # Entry and exit distance per slab.
+    # Entry distance per slab.
     t0x = (near_x - ox) * ix
-    t1x = (far_x - ox) * ix
     t0y = (near_y - oy) * iy
-    t1y = (far_y - oy) * iy
     t0z = (near_z - oz) * iz
-    t1z = (far_z - oz) * iz
     # Intersect the slabs; a NaN comparison is false, so NaN never tightens the interval.
     entry = tmin
     if t0x > entry:
@@ -95,14 +92,7 @@ def ray_box_entry_py(
     if t0z > entry:
         entry = t0z
     # Exit: the nearest far plane (NaN ignored), enlarged by 2 ulp as Ize prescribes.
-    leave = INF
-    if t1x < leave:
-        leave = t1x
-    if t1y < leave:
-        leave = t1y
-    if t1z < leave:
-        leave = t1z
-    leave = leave + abs(leave) * TWO_ULP
+    leave = ray_box_exit(ox, oy, oz, ix, iy, iz, far_x, far_y, far_z)
     if tmax < leave:
         leave = tmax
     if entry <= leave:

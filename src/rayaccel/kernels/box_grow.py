@@ -13,13 +13,17 @@ holds its id bits); only lanes 0–2 and 4–6 are meaningful.
 The min and max are ordered compare-and-select, as ``min``/``max`` in the scalar code,
 so the boxes are bit-identical to a lane loop for finite input.
 
-:func:`grow_bounds` is the counterpart for a box kept in registers, as a 6-tuple.
+:func:`grow_bounds` is the counterpart for a box kept in registers, as a 6-tuple;
+:func:`union_bounds` grows such a box by a stored box, :func:`store_bounds` writes it
+to 6 floats and :func:`store_box` to a pair of corner arrays (:func:`load_box` reads it
+back). A sweep starts from :data:`EMPTY_BOUNDS`.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
@@ -73,4 +77,51 @@ def _grow_bounds_py(bounds, x, y, z):
     )  # fmt: skip
 
 
+#: The empty box ``(+inf, +inf, +inf, -inf, -inf, -inf)`` (float64) a sweep grows from.
+EMPTY_BOUNDS = (np.inf, np.inf, np.inf, -np.inf, -np.inf, -np.inf)
+
+
+def _union_bounds_py(bounds, lo, hi, i, h):
+    """Return ``bounds`` (a 6-tuple) grown by the box ``lo[i, 0:3]`` .. ``hi[i, h:h + 3]``.
+
+    One array of rows holding both corners (``lo`` and ``hi`` the same; ``h`` the high
+    corner's column: 4 for reference rows and bin boxes, 3 for 6-float boxes) or two
+    arrays of corners (``h`` 0). The min and max are taken in the scalar code's order,
+    so the box is the one a loop over six scalars gives.
+    """
+    return (
+        min(bounds[0], lo[i, 0]), min(bounds[1], lo[i, 1]), min(bounds[2], lo[i, 2]),
+        max(bounds[3], hi[i, h]), max(bounds[4], hi[i, h + 1]), max(bounds[5], hi[i, h + 2]),
+    )  # fmt: skip
+
+
+def _store_bounds_py(out, at, bounds):
+    """Write the 6-tuple ``bounds`` to ``out[at:at + 6]`` (lo 0:3, hi 3:6)."""
+    out[at] = bounds[0]
+    out[at + 1] = bounds[1]
+    out[at + 2] = bounds[2]
+    out[at + 3] = bounds[3]
+    out[at + 4] = bounds[4]
+    out[at + 5] = bounds[5]
+
+
+def _load_box_py(lo, hi, i):
+    """Return box ``i`` of the corner arrays ``lo``/``hi`` (``(n, 3)``) as a 6-tuple."""
+    return lo[i, 0], lo[i, 1], lo[i, 2], hi[i, 0], hi[i, 1], hi[i, 2]
+
+
+def _store_box_py(lo, hi, i, bounds):
+    """Write the 6-tuple ``bounds`` to box ``i`` of the corner arrays ``lo``/``hi``."""
+    lo[i, 0] = bounds[0]
+    lo[i, 1] = bounds[1]
+    lo[i, 2] = bounds[2]
+    hi[i, 0] = bounds[3]
+    hi[i, 1] = bounds[4]
+    hi[i, 2] = bounds[5]
+
+
 grow_bounds = cpu_inline(_grow_bounds_py)
+union_bounds = cpu_inline(_union_bounds_py)
+store_bounds = cpu_inline(_store_bounds_py)
+load_box = cpu_inline(_load_box_py)
+store_box = cpu_inline(_store_box_py)

@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel.kernels.triangle import cross3
 
 #: Hits of one ray within this fraction of the scene's size (plus the origin's offset
 #: from the centre and the distance) are compared as possible repeats of one crossing.
@@ -96,9 +97,7 @@ def one_crossing_py(vertices, faces, p, q, dx, dy, dz):
     ey = vertices[e1, 1] - vertices[e0, 1]
     ez = vertices[e1, 2] - vertices[e0, 2]
     # Normal of the plane through the edge and the ray direction.
-    nx = ey * dz - ez * dy
-    ny = ez * dx - ex * dz
-    nz = ex * dy - ey * dx
+    nx, ny, nz = cross3(ex, ey, ez, dx, dy, dz)
     side_p = side(vertices, nx, ny, nz, e0, off_p)
     side_q = side(vertices, nx, ny, nz, e0, off_q)
     return (side_p > 0.0 and side_q < 0.0) or (side_p < 0.0 and side_q > 0.0)
@@ -240,9 +239,7 @@ def hit_points_kernel(
                 acx = vertices[c, 0] - vertices[a, 0]
                 acy = vertices[c, 1] - vertices[a, 1]
                 acz = vertices[c, 2] - vertices[a, 2]
-                nx = aby * acz - abz * acy
-                ny = abz * acx - abx * acz
-                nz = abx * acy - aby * acx
+                nx, ny, nz = cross3(abx, aby, abz, acx, acy, acz)
                 denom = nx * dx + ny * dy + nz * dz
                 s = np.float64(t[i])
                 if denom != 0.0:

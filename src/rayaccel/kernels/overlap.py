@@ -39,6 +39,22 @@ import numpy as np
 from rayaccel._jit import cpu_inline
 
 
+def edge_axis_separates_py(es, et, v0s, v0t, v1s, v1t, v2s, v2t, r):
+    """Return whether a box-axis × edge axis separates the triangle from the box.
+
+    The axis has components ``-et`` and ``es`` on the two box axes ``s, t`` it does not
+    lie along (``e`` the edge), so corner ``i`` projects to ``es·v_it - et·v_is``; the
+    box's projection radius is ``r``. Strictly apart only: touching never separates.
+    """
+    p0 = es * v0t - et * v0s
+    p1 = es * v1t - et * v1s
+    p2 = es * v2t - et * v2s
+    return min(p0, p1, p2) > r or max(p0, p1, p2) < -r
+
+
+edge_axis_separates = cpu_inline(edge_axis_separates_py)
+
+
 def separating_axes_py(tri, prim, lo, hi, plane_axis):
     """Return False when one of the separating axes parts triangle ``prim`` and ``[lo, hi]``.
 
@@ -83,25 +99,16 @@ def separating_axes_py(tri, prim, lo, hi, plane_axis):
             ey = v0y - v2y
             ez = v0z - v2z
         # x × e = (0, -ez, ey)
-        p0 = ey * v0z - ez * v0y
-        p1 = ey * v1z - ez * v1y
-        p2 = ey * v2z - ez * v2y
         r = hy * abs(ez) + hz * abs(ey)
-        if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
+        if edge_axis_separates(ey, ez, v0y, v0z, v1y, v1z, v2y, v2z, r):
             return False
         # y × e = (ez, 0, -ex)
-        p0 = ez * v0x - ex * v0z
-        p1 = ez * v1x - ex * v1z
-        p2 = ez * v2x - ex * v2z
         r = hx * abs(ez) + hz * abs(ex)
-        if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
+        if edge_axis_separates(ez, ex, v0z, v0x, v1z, v1x, v2z, v2x, r):
             return False
         # z × e = (-ey, ex, 0)
-        p0 = ex * v0y - ey * v0x
-        p1 = ex * v1y - ey * v1x
-        p2 = ex * v2y - ey * v2x
         r = hx * abs(ey) + hy * abs(ex)
-        if min(p0, p1, p2) > r or max(p0, p1, p2) < -r:
+        if edge_axis_separates(ex, ey, v0x, v0y, v1x, v1y, v2x, v2y, r):
             return False
     if not plane_axis:
         return True

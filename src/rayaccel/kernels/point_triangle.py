@@ -35,6 +35,30 @@ import math
 from rayaccel._jit import cpu_inline
 
 
+def corner_py(tri, row, k):
+    """Return corner ``k`` (0: A, 1: B, 2: C) of triangle ``row`` of ``tri (n, 9)``, as floats."""
+    return float(tri[row, 3 * k]), float(tri[row, 3 * k + 1]), float(tri[row, 3 * k + 2])
+
+
+def corner_minus_py(tri, row, k, ox, oy, oz):
+    """Return corner ``k`` of triangle ``row`` minus the point ``o``, in float64."""
+    return (
+        float(tri[row, 3 * k]) - ox,
+        float(tri[row, 3 * k + 1]) - oy,
+        float(tri[row, 3 * k + 2]) - oz,
+    )
+
+
+def edge_dots_py(abx, aby, abz, acx, acy, acz, qx, qy, qz):
+    """Return ``(AB·q, AC·q)``: a vector's dot products with a triangle's two edges from A."""
+    return abx * qx + aby * qy + abz * qz, acx * qx + acy * qy + acz * qz
+
+
+corner = cpu_inline(corner_py)
+corner_minus = cpu_inline(corner_minus_py)
+edge_dots = cpu_inline(edge_dots_py)
+
+
 def closest_point_triangle_py(tri, row, px, py, pz):
     """Return ``(d2, u, v)``: squared distance and barycentrics of the closest point.
 
@@ -54,33 +78,22 @@ def closest_point_triangle_py(tri, row, px, py, pz):
     u, v : float64
         Barycentrics of the closest point: ``(1-u-v)·A + u·B + v·C``.
     """
-    ax = float(tri[row, 0])
-    ay = float(tri[row, 1])
-    az = float(tri[row, 2])
-    abx = float(tri[row, 3]) - ax
-    aby = float(tri[row, 4]) - ay
-    abz = float(tri[row, 5]) - az
-    acx = float(tri[row, 6]) - ax
-    acy = float(tri[row, 7]) - ay
-    acz = float(tri[row, 8]) - az
+    ax, ay, az = corner(tri, row, 0)
+    abx, aby, abz = corner_minus(tri, row, 1, ax, ay, az)
+    acx, acy, acz = corner_minus(tri, row, 2, ax, ay, az)
     apx = px - ax
     apy = py - ay
     apz = pz - az
     u = 0.0
     v = 0.0
     # Vertex region of A.
-    d1 = abx * apx + aby * apy + abz * apz
-    d2 = acx * apx + acy * apy + acz * apz
+    d1, d2 = edge_dots(abx, aby, abz, acx, acy, acz, apx, apy, apz)
     if d1 <= 0.0 and d2 <= 0.0:
         u = 0.0
         v = 0.0
     else:
-        # Vertex region of B.
-        bpx = apx - abx
-        bpy = apy - aby
-        bpz = apz - abz
-        d3 = abx * bpx + aby * bpy + abz * bpz
-        d4 = acx * bpx + acy * bpy + acz * bpz
+        # Vertex region of B: the dot products with BP = AP - AB.
+        d3, d4 = edge_dots(abx, aby, abz, acx, acy, acz, apx - abx, apy - aby, apz - abz)
         vc = d1 * d4 - d3 * d2
         if d3 >= 0.0 and d4 <= d3:
             u = 1.0
@@ -90,12 +103,8 @@ def closest_point_triangle_py(tri, row, px, py, pz):
             u = d1 / (d1 - d3)
             v = 0.0
         else:
-            # Vertex region of C.
-            cpx = apx - acx
-            cpy = apy - acy
-            cpz = apz - acz
-            d5 = abx * cpx + aby * cpy + abz * cpz
-            d6 = acx * cpx + acy * cpy + acz * cpz
+            # Vertex region of C: the dot products with CP = AP - AC.
+            d5, d6 = edge_dots(abx, aby, abz, acx, acy, acz, apx - acx, apy - acy, apz - acz)
             vb = d5 * d2 - d1 * d6
             va = d3 * d6 - d5 * d4
             if d6 >= 0.0 and d5 <= d6:
@@ -130,15 +139,9 @@ def triangle_solid_angle_py(tri, row, px, py, pz):
     sums to ``4π`` at an inside point and ``0`` outside. Zero at a point on the
     triangle's plane (and for degenerate triangles).
     """
-    ax = float(tri[row, 0]) - px
-    ay = float(tri[row, 1]) - py
-    az = float(tri[row, 2]) - pz
-    bx = float(tri[row, 3]) - px
-    by = float(tri[row, 4]) - py
-    bz = float(tri[row, 5]) - pz
-    cx = float(tri[row, 6]) - px
-    cy = float(tri[row, 7]) - py
-    cz = float(tri[row, 8]) - pz
+    ax, ay, az = corner_minus(tri, row, 0, px, py, pz)
+    bx, by, bz = corner_minus(tri, row, 1, px, py, pz)
+    cx, cy, cz = corner_minus(tri, row, 2, px, py, pz)
     la = math.sqrt(ax * ax + ay * ay + az * az)
     lb = math.sqrt(bx * bx + by * by + bz * bz)
     lc = math.sqrt(cx * cx + cy * cy + cz * cz)

@@ -44,6 +44,17 @@ def box_half_area_py(lo_x, lo_y, lo_z, hi_x, hi_y, hi_z):
     return ex * ey + ey * ez + ez * ex
 
 
+def bounds_half_area_py(bounds):
+    """Return :func:`box_half_area_py` of a 6-tuple box ``(lo.x, lo.y, lo.z, hi.x, hi.y, hi.z)``.
+
+    The form for a box grown in registers (:func:`rayaccel.kernels.box_grow.union_bounds`).
+    """
+    ex = np.float64(bounds[3]) - bounds[0]
+    ey = np.float64(bounds[4]) - bounds[1]
+    ez = np.float64(bounds[5]) - bounds[2]
+    return ex * ey + ey * ez + ez * ex
+
+
 def node_half_area_py(lo, hi, i):
     """Return the half surface area of box ``i`` of ``lo``/``hi`` (``(n, 3)`` float32), in float64.
 
@@ -100,6 +111,7 @@ def sah_split_cost_scaled_py(trav_cost, cost_scale, area_left, n_left, area_righ
 
 
 box_half_area = cpu_inline(box_half_area_py)
+bounds_half_area = cpu_inline(bounds_half_area_py)
 node_half_area = cpu_inline(node_half_area_py)
 union_half_area = cpu_inline(union_half_area_py)
 sah_split_cost = cpu_inline(sah_split_cost_py)

@@ -148,5 +148,28 @@ def ray_triangle_py(tri, row, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, tmin, tmax)
     return F32_INF, F32_ZERO, F32_ZERO
 
 
+def triangle_edges64_py(tri, p):
+    """Return the edges ``B - A`` and ``C - A`` of triangle ``p`` of ``tri (F, 3, 3)``, in float64.
+
+    As six floats ``(e1x, e1y, e1z, e2x, e2y, e2z)``, exact for float32 corners: the
+    form for areas and normals that must not round (slivers, the builders' tests).
+    """
+    return (
+        np.float64(tri[p, 1, 0]) - tri[p, 0, 0],
+        np.float64(tri[p, 1, 1]) - tri[p, 0, 1],
+        np.float64(tri[p, 1, 2]) - tri[p, 0, 2],
+        np.float64(tri[p, 2, 0]) - tri[p, 0, 0],
+        np.float64(tri[p, 2, 1]) - tri[p, 0, 1],
+        np.float64(tri[p, 2, 2]) - tri[p, 0, 2],
+    )
+
+
+def cross3_py(ax, ay, az, bx, by, bz):
+    """Return the cross product ``a × b`` of two vectors given by their components."""
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+
+
 ray_triangle_setup = cpu_inline(ray_triangle_setup_py)
 ray_triangle = cpu_inline(ray_triangle_py)
+triangle_edges64 = cpu_inline(triangle_edges64_py)
+cross3 = cpu_inline(cross3_py)

@@ -52,7 +52,7 @@ from rayaccel.bvh.builders.split_binned import (
     reset_bins,
     split_binned_node,
 )
-from rayaccel.bvh.builders.topdown import BINNED, build_frontier, new_pool
+from rayaccel.bvh.builders.topdown import BINNED, build_frontier, check_split_options, new_pool
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.box_grow import grow_box_row
@@ -90,12 +90,9 @@ class BinnedSahOptions:
     def __post_init__(self) -> None:
         if not 2 <= self.n_bins <= MAX_BINS:
             raise InvalidInputError(f"n_bins: expected 2..{MAX_BINS}, got {self.n_bins}")
-        if not 1 <= self.max_leaf_size <= 64:
-            raise InvalidInputError(f"max_leaf_size: expected 1..64, got {self.max_leaf_size}")
-        if not (self.traversal_cost >= 0 and self.intersection_cost > 0):
-            raise InvalidInputError("traversal_cost must be >= 0 and intersection_cost > 0")
-        if self.parallel_threshold < 2:
-            raise InvalidInputError("parallel_threshold: expected >= 2")
+        check_split_options(
+            self.max_leaf_size, self.traversal_cost, self.intersection_cost, self.parallel_threshold
+        )
 
 
 

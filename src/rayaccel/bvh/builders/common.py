@@ -233,6 +233,23 @@ def compact_to_canonical(
     dropped (:func:`rayaccel.bvh.builders.refs.remove_leaf_duplicates`).
     """
     lo, hi, first, count = _compact_kernel(t_lo, t_hi, t_first, t_count, max(n_used, 1))
+    return canonical_bvh2(lo, hi, first, count, prim_index, n_prims)
+
+
+def canonical_bvh2(
+    lo: np.ndarray,
+    hi: np.ndarray,
+    first: np.ndarray,
+    count: np.ndarray,
+    prim_index: np.ndarray,
+    n_prims: int,
+) -> Bvh2:
+    """Return the :class:`Bvh2` of a builder's canonical arrays, any leaf's repeats dropped.
+
+    The arrays become contiguous float32/int32; with more references than primitives
+    (pre-split input) a leaf's repeated primitives are dropped
+    (:func:`rayaccel.bvh.builders.refs.remove_leaf_duplicates`).
+    """
     bvh = Bvh2(
         node_lo=np.ascontiguousarray(lo, dtype=REAL),
         node_hi=np.ascontiguousarray(hi, dtype=REAL),

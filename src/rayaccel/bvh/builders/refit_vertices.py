@@ -44,6 +44,7 @@ from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.config import parallel_section
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+from rayaccel.kernels.box_grow import store_box, union_bounds
 from rayaccel.kernels.sah import node_half_area
 
 #: Nodes per work item of the refit pass (about 100 KB of boxes; small enough to balance
@@ -101,25 +102,14 @@ def _refit_kernel(parallel: bool) -> Any:
                     if count == 0:
                         continue
                     # A leaf: the union of its triangles' corner boxes.
-                    x0 = y0 = z0 = np.float32(np.inf)
-                    x1 = y1 = z1 = np.float32(-np.inf)
+                    inf = np.float32(np.inf)
+                    box = (inf, inf, inf, -inf, -inf, -inf)
                     first = node_first[u]
                     for j in range(first, first + count):
                         p = np.uint64(prim_index[np.uint64(j)])
                         for c in range(3):
-                            v = np.uint64(faces[p, c])
-                            x0 = min(x0, vertices[v, 0])
-                            y0 = min(y0, vertices[v, 1])
-                            z0 = min(z0, vertices[v, 2])
-                            x1 = max(x1, vertices[v, 0])
-                            y1 = max(y1, vertices[v, 1])
-                            z1 = max(z1, vertices[v, 2])
-                    lo[u, 0] = x0
-                    lo[u, 1] = y0
-                    lo[u, 2] = z0
-                    hi[u, 0] = x1
-                    hi[u, 1] = y1
-                    hi[u, 2] = z1
+                            box = union_bounds(box, vertices, vertices, np.uint64(faces[p, c]), 0)
+                    store_box(lo, hi, u, box)
                     # Climb while this thread is the second to reach each parent.
                     up = parent[u]
                     while up >= 0 and atomic_exchange(arrived, up, np.int32(1)) == 1:

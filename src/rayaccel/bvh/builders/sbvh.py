@@ -54,7 +54,7 @@ from rayaccel.bvh.builders.common import ref_range_bounds, ref_rows, triangle_re
 from rayaccel.bvh.builders.refs import BuildRefs, check_refs
 from rayaccel.bvh.builders.split_binned import MAX_BINS
 from rayaccel.bvh.builders.split_spatial import SpatialParams
-from rayaccel.bvh.builders.topdown import SPATIAL, build_top_down, new_pool
+from rayaccel.bvh.builders.topdown import SPATIAL, build_top_down, check_split_options, new_pool
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.layouts.linked_tree import LinkedTree, linked_to_canonical
 from rayaccel.errors import InvalidInputError
@@ -118,12 +118,9 @@ class SbvhOptions:
             raise InvalidInputError(
                 f"spatial_depth_limit: expected 0..64, got {self.spatial_depth_limit}"
             )
-        if not 1 <= self.max_leaf_size <= 64:
-            raise InvalidInputError(f"max_leaf_size: expected 1..64, got {self.max_leaf_size}")
-        if not (self.traversal_cost >= 0 and self.intersection_cost > 0):
-            raise InvalidInputError("traversal_cost must be >= 0 and intersection_cost > 0")
-        if self.parallel_threshold < 2:
-            raise InvalidInputError("parallel_threshold: expected >= 2")
+        check_split_options(
+            self.max_leaf_size, self.traversal_cost, self.intersection_cost, self.parallel_threshold
+        )
 
 
 @cpu_kernel(parallel=True)

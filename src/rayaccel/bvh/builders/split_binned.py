@@ -30,8 +30,14 @@ import numpy as np
 
 from rayaccel._jit import cpu_inline
 from rayaccel.bvh.builders.common import ref_range_bounds
-from rayaccel.kernels.box_grow import grow_bounds, grow_box_row
-from rayaccel.kernels.sah import box_half_area, sah_split_cost
+from rayaccel.kernels.box_grow import (
+    EMPTY_BOUNDS,
+    grow_bounds,
+    grow_box_row,
+    store_bounds,
+    union_bounds,
+)
+from rayaccel.kernels.sah import bounds_half_area, box_half_area, sah_split_cost
 
 #: Most bins per axis (``n_bins`` options are checked against it).
 MAX_BINS = 256
@@ -173,6 +179,22 @@ def bin_scales(cb, n_bins, scale):
 
 
 @cpu_inline
+def suffix_bounds(counts, boxes, h, n_bins, suffix):
+    """Write ``suffix[b]``: the box (0:6) and count (6) of bins ``b..n_bins-1``, for ``b >= 1``.
+
+    The right-to-left pass of a bin sweep (object and spatial bins): bin ``b`` holds
+    ``counts[b]`` references in the box ``boxes[b, 0:3]`` .. ``boxes[b, h:h + 3]``.
+    """
+    right = EMPTY_BOUNDS
+    n_right = 0
+    for b in range(n_bins - 1, 0, -1):
+        n_right += counts[b]
+        right = union_bounds(right, boxes, boxes, b, h)
+        store_bounds(suffix[b], 0, right)
+        suffix[b, 6] = n_right
+
+
+@cpu_inline
 def best_bin_split(
     counts, bin_box, n_bins, scale, count, node_area, trav_cost, isect_cost, suffix, child_box
 ):
@@ -188,49 +210,18 @@ def best_bin_split(
     for a in range(3):
         if scale[a] == 0:
             continue
-        # Right-to-left prefix: box and count of bins b..n_bins-1.
-        lo0 = np.inf
-        lo1 = np.inf
-        lo2 = np.inf
-        hi0 = -np.inf
-        hi1 = -np.inf
-        hi2 = -np.inf
-        n_right = 0
-        for b in range(n_bins - 1, 0, -1):
-            n_right += counts[a, b]
-            lo0 = min(lo0, bin_box[a, b, 0])
-            lo1 = min(lo1, bin_box[a, b, 1])
-            lo2 = min(lo2, bin_box[a, b, 2])
-            hi0 = max(hi0, bin_box[a, b, 4])
-            hi1 = max(hi1, bin_box[a, b, 5])
-            hi2 = max(hi2, bin_box[a, b, 6])
-            suffix[b, 0] = lo0
-            suffix[b, 1] = lo1
-            suffix[b, 2] = lo2
-            suffix[b, 3] = hi0
-            suffix[b, 4] = hi1
-            suffix[b, 5] = hi2
-            suffix[b, 6] = n_right
+        bins = bin_box[a]
+        suffix_bounds(counts[a], bins, 4, n_bins, suffix)
         # Left-to-right sweep evaluating the plane after bin b.
-        lo0 = np.inf
-        lo1 = np.inf
-        lo2 = np.inf
-        hi0 = -np.inf
-        hi1 = -np.inf
-        hi2 = -np.inf
+        left = EMPTY_BOUNDS
         n_left = 0
         for b in range(n_bins - 1):
             n_left += counts[a, b]
-            lo0 = min(lo0, bin_box[a, b, 0])
-            lo1 = min(lo1, bin_box[a, b, 1])
-            lo2 = min(lo2, bin_box[a, b, 2])
-            hi0 = max(hi0, bin_box[a, b, 4])
-            hi1 = max(hi1, bin_box[a, b, 5])
-            hi2 = max(hi2, bin_box[a, b, 6])
+            left = union_bounds(left, bins, bins, b, 4)
             n_r = count - n_left
             if n_left == 0 or n_r == 0:
                 continue
-            area_left = box_half_area(lo0, lo1, lo2, hi0, hi1, hi2)
+            area_left = bounds_half_area(left)
             s = suffix[b + 1]
             area_right = box_half_area(s[0], s[1], s[2], s[3], s[4], s[5])
             cost = sah_split_cost(
@@ -240,12 +231,7 @@ def best_bin_split(
                 best_cost = cost
                 best_axis = a
                 best_bin = b
-                child_box[0] = lo0
-                child_box[1] = lo1
-                child_box[2] = lo2
-                child_box[3] = hi0
-                child_box[4] = hi1
-                child_box[5] = hi2
+                store_bounds(child_box, 0, left)
                 for k in range(6):
                     child_box[6 + k] = s[k]
     return best_cost, best_axis, best_bin

@@ -35,9 +35,11 @@ from rayaccel.bvh.builders.split_binned import (
     binned_split,
     node_bin_count,
     partition_refs,
+    suffix_bounds,
 )
+from rayaccel.kernels.box_grow import EMPTY_BOUNDS, union_bounds
 from rayaccel.kernels.clip import split_triangle_bounds
-from rayaccel.kernels.sah import box_half_area, sah_split_cost
+from rayaccel.kernels.sah import bounds_half_area, box_half_area, sah_split_cost
 
 
 class SpatialParams(NamedTuple):
@@ -198,7 +200,6 @@ def spatial_try_split(
     s_exit = ws.s_exit
     s_enter = ws.s_enter
     s_box = ws.s_box
-    cur = ws.cur
     ref_range_bounds(refs, begin, end, box)
     node_area = box_half_area(box[0], box[1], box[2], box[3], box[4], box[5])
     # 1. Object split on centroid bins.
@@ -238,46 +239,22 @@ def spatial_try_split(
         for a in range(3):
             if np.float64(box[3 + a]) - box[a] <= 0:
                 continue
-            n_right = 0
             for k in range(6):
                 suffix[0, k] = np.inf if k < 3 else -np.inf
-            rlo0 = np.inf
-            rlo1 = np.inf
-            rlo2 = np.inf
-            rhi0 = -np.inf
-            rhi1 = -np.inf
-            rhi2 = -np.inf
-            for b in range(node_sbins - 1, 0, -1):
-                n_right += s_exit[a, b]
-                rlo0 = min(rlo0, s_box[a, b, 0])
-                rlo1 = min(rlo1, s_box[a, b, 1])
-                rlo2 = min(rlo2, s_box[a, b, 2])
-                rhi0 = max(rhi0, s_box[a, b, 3])
-                rhi1 = max(rhi1, s_box[a, b, 4])
-                rhi2 = max(rhi2, s_box[a, b, 5])
-                suffix[b, 0] = rlo0
-                suffix[b, 1] = rlo1
-                suffix[b, 2] = rlo2
-                suffix[b, 3] = rhi0
-                suffix[b, 4] = rhi1
-                suffix[b, 5] = rhi2
-                suffix[b, 6] = n_right
+            bins = s_box[a]
+            suffix_bounds(s_exit[a], bins, 3, node_sbins, suffix)
             n_left = 0
-            for k in range(3):
-                cur[k] = np.inf
-                cur[3 + k] = -np.inf
+            left = EMPTY_BOUNDS
             for b in range(node_sbins - 1):
                 n_left += s_enter[a, b]
-                for k in range(3):
-                    cur[k] = min(cur[k], s_box[a, b, k])
-                    cur[3 + k] = max(cur[3 + k], s_box[a, b, 3 + k])
+                left = union_bounds(left, bins, bins, b, 3)
                 n_r = int(suffix[b + 1, 6])
                 if n_left == 0 or n_r == 0:
                     continue
                 # Duplicates must fit in the node's capacity.
                 if begin + n_left + n_r > cap:
                     continue
-                area_l = box_half_area(cur[0], cur[1], cur[2], cur[3], cur[4], cur[5])
+                area_l = bounds_half_area(left)
                 s = suffix[b + 1]
                 area_r = box_half_area(s[0], s[1], s[2], s[3], s[4], s[5])
                 c = sah_split_cost(

@@ -23,7 +23,8 @@ from typing import NamedTuple
 import numpy as np
 
 from rayaccel._jit import cpu_inline
-from rayaccel.kernels.sah import box_half_area, sah_split_cost_scaled
+from rayaccel.kernels.box_grow import EMPTY_BOUNDS, union_bounds
+from rayaccel.kernels.sah import bounds_half_area, box_half_area, sah_split_cost_scaled
 
 
 class SweepParams(NamedTuple):
@@ -97,39 +98,17 @@ def sweep_try_split(
         return best_cost, best_axis, best_i
     for a in range(3):
         # Suffix pass: area of primitives i..end-1 in this axis's order.
-        lo0 = np.inf
-        lo1 = np.inf
-        lo2 = np.inf
-        hi0 = -np.inf
-        hi1 = -np.inf
-        hi2 = -np.inf
+        right = EMPTY_BOUNDS
         for i in range(end - 1, begin, -1):
-            p = order[a, i]
-            lo0 = min(lo0, prim_lo[p, 0])
-            lo1 = min(lo1, prim_lo[p, 1])
-            lo2 = min(lo2, prim_lo[p, 2])
-            hi0 = max(hi0, prim_hi[p, 0])
-            hi1 = max(hi1, prim_hi[p, 1])
-            hi2 = max(hi2, prim_hi[p, 2])
-            right_area[i - begin] = box_half_area(lo0, lo1, lo2, hi0, hi1, hi2)
+            right = union_bounds(right, prim_lo, prim_hi, order[a, i], 0)
+            right_area[i - begin] = bounds_half_area(right)
         # Prefix pass: evaluate "begin..i-1 | i..end-1".
-        lo0 = np.inf
-        lo1 = np.inf
-        lo2 = np.inf
-        hi0 = -np.inf
-        hi1 = -np.inf
-        hi2 = -np.inf
+        left = EMPTY_BOUNDS
         for i in range(begin + 1, end):
-            p = order[a, i - 1]
-            lo0 = min(lo0, prim_lo[p, 0])
-            lo1 = min(lo1, prim_lo[p, 1])
-            lo2 = min(lo2, prim_lo[p, 2])
-            hi0 = max(hi0, prim_hi[p, 0])
-            hi1 = max(hi1, prim_hi[p, 1])
-            hi2 = max(hi2, prim_hi[p, 2])
+            left = union_bounds(left, prim_lo, prim_hi, order[a, i - 1], 0)
             cost = sah_split_cost_scaled(
-                params.traversal_cost, cost_scale, box_half_area(lo0, lo1, lo2, hi0, hi1, hi2),
-                i - begin, right_area[i - begin], end - i,
+                params.traversal_cost, cost_scale, bounds_half_area(left), i - begin,
+                right_area[i - begin], end - i,
             )  # fmt: skip
             if cost < best_cost:
                 best_cost = cost

@@ -32,10 +32,9 @@ from rayaccel._variant import register
 from rayaccel.bvh.builders.common import compact_to_canonical, primitive_bounds
 from rayaccel.bvh.builders.refs import BuildRefs, check_refs
 from rayaccel.bvh.builders.split_sweep import SweepParams
-from rayaccel.bvh.builders.topdown import SWEEP, build_top_down, new_pool
+from rayaccel.bvh.builders.topdown import SWEEP, build_top_down, check_split_options, new_pool
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.dtypes import IntArray
-from rayaccel.errors import InvalidInputError
 from rayaccel.scene.mesh import TriangleMesh
 
 
@@ -58,10 +57,7 @@ class SweepSahOptions:
     intersection_cost: float = 1.0
 
     def __post_init__(self) -> None:
-        if not 1 <= self.max_leaf_size <= 64:
-            raise InvalidInputError(f"max_leaf_size: expected 1..64, got {self.max_leaf_size}")
-        if not (self.traversal_cost >= 0 and self.intersection_cost > 0):
-            raise InvalidInputError("traversal_cost must be >= 0 and intersection_cost > 0")
+        check_split_options(self.max_leaf_size, self.traversal_cost, self.intersection_cost)
 
 
 @cpu_kernel()

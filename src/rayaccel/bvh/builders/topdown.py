@@ -68,6 +68,7 @@ from rayaccel.bvh.builders.split_spatial import (
 from rayaccel.bvh.builders.split_sweep import sweep_apply_split, sweep_try_split, sweep_workspace
 from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
 from rayaccel.dtypes import FloatArray, IntArray
+from rayaccel.errors import InvalidInputError
 
 #: Binned SAH object splits (:mod:`rayaccel.bvh.builders.split_binned`).
 BINNED = 0
@@ -79,6 +80,25 @@ SPLIT_KINDS = (BINNED, SWEEP, SPATIAL)
 
 #: Work-stack entries: one pending right child per level, and depth <= MAX_DEPTH.
 STACK_SIZE = 2 * MAX_DEPTH + 4
+
+
+def check_split_options(
+    max_leaf_size: int,
+    traversal_cost: float,
+    intersection_cost: float,
+    parallel_threshold: int | None = None,
+) -> None:
+    """Raise :class:`InvalidInputError` for a top-down SAH builder's out-of-range option.
+
+    The checks shared by ``bvh2.binned_sah``, ``bvh2.sbvh`` and ``bvh2.sweep_sah``
+    (``parallel_threshold`` None: the builder has none).
+    """
+    if not 1 <= max_leaf_size <= 64:
+        raise InvalidInputError(f"max_leaf_size: expected 1..64, got {max_leaf_size}")
+    if not (traversal_cost >= 0 and intersection_cost > 0):
+        raise InvalidInputError("traversal_cost must be >= 0 and intersection_cost > 0")
+    if parallel_threshold is not None and parallel_threshold < 2:
+        raise InvalidInputError("parallel_threshold: expected >= 2")
 
 
 class NodePool(NamedTuple):

@@ -31,6 +31,7 @@ import numpy as np
 from rayaccel._jit import cpu_kernel
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray
 from rayaccel.errors import StructureInvariantError
+from rayaccel.kernels.structure_checks import check_prims_listed
 
 #: Deepest tree any builder may emit; traversal stacks hold STACK_SIZE >= MAX_DEPTH entries.
 MAX_DEPTH = 56
@@ -199,16 +200,7 @@ class Bvh2:
         code, where = _check_topology(self.arrays(), MAX_DEPTH)
         if code != 0:
             raise StructureInvariantError(f"bvh2: node {where}: {_TOPOLOGY_ERRORS[code]}")
-        if self.prim_index.size and (
-            self.prim_index.min() < 0 or self.prim_index.max() >= self.n_prims
-        ):
-            raise StructureInvariantError("bvh2: prim_index entry out of range [0, n_prims)")
-        referenced = np.zeros(self.n_prims, dtype=bool)
-        referenced[self.prim_index] = True
-        if not referenced.all():
-            raise StructureInvariantError(
-                f"bvh2: primitive {int(np.argmin(referenced))} is in no leaf"
-            )
+        check_prims_listed(self.prim_index, self.n_prims, "bvh2")
         if self.n_refs == self.n_prims and np.unique(self.prim_index).size != self.n_prims:
             raise StructureInvariantError("bvh2: a primitive appears in two leaves")
         # Leaves tile prim_index in order of their first slot (checked above).
@@ -357,16 +349,7 @@ class PackedBvh2:
 
     def arrays(self) -> PackedArrays:
         """Return the arrays as a NamedTuple kernels take as one argument."""
-        return PackedArrays(
-            self.rows,
-            self.rows.view(np.int32),
-            self.leaf_first,
-            self.leaf_count,
-            self.tri,
-            self.tri_prim,
-            self.root_box,
-            self.root_ref,
-        )
+        return PackedArrays(*row_arrays(self.rows, self), self.root_ref)
 
     def nbytes(self) -> int:
         """Return the packed size in bytes."""
@@ -377,6 +360,25 @@ class PackedBvh2:
             + self.tri.nbytes
             + self.tri_prim.nbytes
         )
+
+
+def row_arrays(
+    rows: np.ndarray, packed: PackedBvh2
+) -> tuple[FloatArray, IntArray, IntArray, IntArray, RealArray, IntArray, FloatArray]:
+    """Return the first fields of a row layout's kernel argument.
+
+    ``rows`` and their int32 view, then ``packed``'s leaf tables, triangle rows and
+    root box, which the layouts derived from the packed one share with it.
+    """
+    return (
+        rows,
+        rows.view(np.int32),
+        packed.leaf_first,
+        packed.leaf_count,
+        packed.tri,
+        packed.tri_prim,
+        packed.root_box,
+    )
 
 
 @cpu_kernel()

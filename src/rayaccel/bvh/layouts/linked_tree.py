@@ -43,11 +43,10 @@ from numba import prange
 from rayaccel._hugepages import empty_huge, zeros_huge
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._work import new_counter, next_item, worker_count
-from rayaccel.bvh.builders.common import ceil_log2
+from rayaccel.bvh.builders.common import canonical_bvh2, ceil_log2
 from rayaccel.bvh.builders.refit import FRONTIER_SIZE, push, refit_collapse, top_frontier
-from rayaccel.bvh.builders.refs import remove_leaf_duplicates
 from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
-from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
+from rayaccel.dtypes import INDEX, FloatArray, IntArray
 
 
 class LinkedTree(NamedTuple):
@@ -379,15 +378,7 @@ def refitted_to_canonical(
         n_prim,
         numba.get_num_threads(),
     )
-    bvh = Bvh2(
-        node_lo=np.ascontiguousarray(lo, dtype=REAL),
-        node_hi=np.ascontiguousarray(hi, dtype=REAL),
-        node_first=np.ascontiguousarray(first, dtype=INDEX),
-        node_count=np.ascontiguousarray(count, dtype=INDEX),
-        prim_index=np.ascontiguousarray(prim, dtype=INDEX),
-        n_prims=n_prims,
-    )
-    return remove_leaf_duplicates(bvh)
+    return canonical_bvh2(lo, hi, first, count, prim, n_prims)
 
 
 def collapsed_to_canonical(tree: LinkedTree, root: int, n_prims: int, options: Any) -> Bvh2:

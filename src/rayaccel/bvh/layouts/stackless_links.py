@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, Bvh2, PackedBvh2, aligned_zeros
+from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, Bvh2, PackedBvh2, aligned_zeros, row_arrays
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.trace.run import memoised_layout
 
@@ -116,16 +116,7 @@ class SkipBvh2:
 
     def arrays(self) -> SkipArrays:
         """Return the arrays as a NamedTuple kernels take as one argument."""
-        p = self.packed
-        return SkipArrays(
-            self.rows,
-            self.rows.view(np.int32),
-            p.leaf_first,
-            p.leaf_count,
-            p.tri,
-            p.tri_prim,
-            p.root_box,
-        )
+        return SkipArrays(*row_arrays(self.rows, self.packed))
 
     def nbytes(self) -> int:
         """Bytes of the skip rows (leaf tables and triangles are shared with the packed layout)."""

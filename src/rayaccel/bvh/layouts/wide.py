@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, PackedBvh2, aligned_zeros
+from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, PackedBvh2, aligned_zeros, row_arrays
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
 
@@ -85,17 +85,7 @@ class WideBvh:
 
     def arrays(self) -> WideArrays:
         """Return the arrays kernels take as one argument."""
-        p = self.packed
-        return WideArrays(
-            self.rows,
-            self.rows.view(np.int32),
-            p.leaf_first,
-            p.leaf_count,
-            p.tri,
-            p.tri_prim,
-            p.root_box,
-            self.root_ref,
-        )
+        return WideArrays(*row_arrays(self.rows, self.packed), self.root_ref)
 
     def nbytes(self) -> int:
         """Bytes of the wide rows (the shared packed arrays count with the packed layout)."""

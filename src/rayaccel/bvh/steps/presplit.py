@@ -53,6 +53,7 @@ from rayaccel.bvh.builders.refs import BuildRefs
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.clip import split_triangle_bounds
+from rayaccel.kernels.triangle import cross3, triangle_edges64
 from rayaccel.scene.mesh import TriangleMesh
 
 #: Finest spatial-median level searched (2^-32 of the scene extent is below float32 precision).
@@ -301,15 +302,8 @@ def _median_priorities(tri, s_lo, s_ext, base, exponent):
             continue
         a_box = 2.0 * (ex * ey + ey * ez + ez * ex)
         # Triangle area (A_ideal of the paper approximated by A_tri).
-        e1x = np.float64(tri[t, 1, 0]) - tri[t, 0, 0]
-        e1y = np.float64(tri[t, 1, 1]) - tri[t, 0, 1]
-        e1z = np.float64(tri[t, 1, 2]) - tri[t, 0, 2]
-        e2x = np.float64(tri[t, 2, 0]) - tri[t, 0, 0]
-        e2y = np.float64(tri[t, 2, 1]) - tri[t, 0, 1]
-        e2z = np.float64(tri[t, 2, 2]) - tri[t, 0, 2]
-        cx = e1y * e2z - e1z * e2y
-        cy = e1z * e2x - e1x * e2z
-        cz = e1x * e2y - e1y * e2x
+        e1x, e1y, e1z, e2x, e2y, e2z = triangle_edges64(tri, t)
+        cx, cy, cz = cross3(e1x, e1y, e1z, e2x, e2y, e2z)
         a_tri = 0.5 * math.sqrt(cx * cx + cy * cy + cz * cz)
         gain = max(a_box - a_tri, 0.0)
         p[t] = (base ** (-best) * gain) ** exponent

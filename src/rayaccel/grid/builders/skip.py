@@ -49,6 +49,7 @@ from rayaccel.grid.layouts.uniform import (
     UniformGrid,
     mip_levels_needed,
 )
+from rayaccel.kernels.box_grow import store_bounds
 from rayaccel.scene.mesh import TriangleMesh
 
 _FAR = 1 << 30
@@ -115,12 +116,7 @@ def macro_regions(cell_start, rx, ry, rz):
             for x in range(rx):
                 c = x + rx * (y + ry * z)
                 if taken[c] and cell_start[c + 1] > cell_start[c]:
-                    box[c, 0] = x
-                    box[c, 1] = y
-                    box[c, 2] = z
-                    box[c, 3] = x
-                    box[c, 4] = y
-                    box[c, 5] = z
+                    store_bounds(box[c], 0, (x, y, z, x, y, z))
                     continue
                 if taken[c]:
                     continue
@@ -157,12 +153,7 @@ def macro_regions(cell_start, rx, ry, rz):
                         row = rx * (yy + ry * zz)
                         for xx in range(x, x1 + 1):
                             taken[row + xx] = 1
-                            box[row + xx, 0] = x
-                            box[row + xx, 1] = y
-                            box[row + xx, 2] = z
-                            box[row + xx, 3] = x1
-                            box[row + xx, 4] = y1
-                            box[row + xx, 5] = z1
+                            store_bounds(box[row + xx], 0, (x, y, z, x1, y1, z1))
     return box
 
 
@@ -205,10 +196,30 @@ def mip_bits(cell_start, rx, ry, rz, top):
     return out
 
 
-def _with_skip(grid: UniformGrid, kind: int, start: float, skip: np.ndarray) -> UniformGrid:
-    phases = dict(grid.phase_ms)
+def add_skip(grid: UniformGrid, kind: int, phases: dict[str, float]) -> UniformGrid:
+    """Return ``grid`` with skip data of ``kind`` over its cells; ``phases["skip"]`` gets its ms.
+
+    ``grid.phase_ms`` is kept (the two-level grid records the phase in its own dict).
+    """
+    start = time.perf_counter()
+    rx, ry, rz = (int(r) for r in grid.res)
+    if kind == SKIP_DISTANCE:
+        skip = chessboard_distance(grid.cell_start, rx, ry, rz)
+    elif kind == SKIP_MACRO:
+        skip = macro_regions(grid.cell_start, rx, ry, rz)
+    else:
+        skip = mip_bits(grid.cell_start, rx, ry, rz, mip_levels_needed(grid.res))
     phases["skip"] = (time.perf_counter() - start) * 1e3
-    return dataclasses.replace(grid, skip_kind=kind, skip=skip, phase_ms=phases)
+    return dataclasses.replace(grid, skip_kind=kind, skip=skip)
+
+
+def _build_skip_grid(
+    mesh: TriangleMesh, options: UniformGridOptions | None, key: str, kind: int
+) -> UniformGrid:
+    """Build ``grid.uniform`` under ``key`` and add skip data of ``kind`` (:func:`add_skip`)."""
+    grid, _ = build_uniform(mesh, options or UniformGridOptions(), key)
+    phases = dict(grid.phase_ms)
+    return dataclasses.replace(add_skip(grid, kind, phases), phase_ms=phases)
 
 
 @register(
@@ -223,11 +234,7 @@ def build_distance_grid(
     mesh: TriangleMesh, options: UniformGridOptions | None = None
 ) -> UniformGrid:
     """Build ``grid.uniform`` and its distance field (see the module docstring)."""
-    grid, _ = build_uniform(mesh, options or UniformGridOptions(), "grid.distance")
-    start = time.perf_counter()
-    rx, ry, rz = (int(r) for r in grid.res)
-    skip = chessboard_distance(grid.cell_start, rx, ry, rz)
-    return _with_skip(grid, SKIP_DISTANCE, start, skip)
+    return _build_skip_grid(mesh, options, "grid.distance", SKIP_DISTANCE)
 
 
 @register(
@@ -242,11 +249,7 @@ def build_macro_region_grid(
     mesh: TriangleMesh, options: UniformGridOptions | None = None
 ) -> UniformGrid:
     """Build ``grid.uniform`` and its macro regions (see the module docstring)."""
-    grid, _ = build_uniform(mesh, options or UniformGridOptions(), "grid.macro_regions")
-    start = time.perf_counter()
-    rx, ry, rz = (int(r) for r in grid.res)
-    skip = macro_regions(grid.cell_start, rx, ry, rz)
-    return _with_skip(grid, SKIP_MACRO, start, skip)
+    return _build_skip_grid(mesh, options, "grid.macro_regions", SKIP_MACRO)
 
 
 @register(
@@ -259,8 +262,4 @@ def build_macro_region_grid(
 )
 def build_mipmap_grid(mesh: TriangleMesh, options: UniformGridOptions | None = None) -> UniformGrid:
     """Build ``grid.uniform`` and its occupancy mip-map (see the module docstring)."""
-    grid, _ = build_uniform(mesh, options or UniformGridOptions(), "grid.mipmap")
-    start = time.perf_counter()
-    rx, ry, rz = (int(r) for r in grid.res)
-    skip = mip_bits(grid.cell_start, rx, ry, rz, mip_levels_needed(grid.res))
-    return _with_skip(grid, SKIP_MIPMAP, start, skip)
+    return _build_skip_grid(mesh, options, "grid.mipmap", SKIP_MIPMAP)

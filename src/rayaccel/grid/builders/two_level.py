@@ -21,7 +21,6 @@ own proposal (empty-space skipping on the two-level grid), read by ``grid.skip``
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -33,17 +32,11 @@ from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
-from rayaccel.grid.builders.skip import chessboard_distance
-from rayaccel.grid.builders.uniform import (
-    PRIM_CHUNK,
-    UniformGridOptions,
-    build_uniform,
-    cell_ranges,
-)
+from rayaccel.grid.builders.skip import add_skip
+from rayaccel.grid.builders.uniform import PRIM_CHUNK, UniformGridOptions, build_uniform, sort_pairs
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import MAX_RES_AXIS, SKIP_DISTANCE, cell_margin
 from rayaccel.kernels.overlap import triangle_box_overlap
-from rayaccel.kernels.radix_sort import radix_sort
 from rayaccel.scene.mesh import TriangleMesh
 
 
@@ -317,12 +310,7 @@ def leaf_level(
     values = np.empty(n_pairs, dtype=np.int32)
     _leaf_pairs(*args, starts, keys, values, FILL)
     phases["leaf_pairs"] = (time.perf_counter() - t1) * 1e3
-    t1 = time.perf_counter()
-    keys, values = radix_sort(keys, values, max(1, (n_leaves - 1).bit_length()))
-    phases["leaf_sort"] = (time.perf_counter() - t1) * 1e3
-    t1 = time.perf_counter()
-    leaf_start = cell_ranges(keys, n_leaves)
-    phases["leaf_ranges"] = (time.perf_counter() - t1) * 1e3
+    leaf_start, values = sort_pairs(keys, values, n_leaves, phases, "leaf_")
     return LeafLevel(
         sub_res, leaf_first, leaf_size, leaf_start, np.ascontiguousarray(values, dtype=INDEX)
     )
@@ -350,19 +338,8 @@ def build_two_level_grid(
     asked = f"grid.two_level: leaf density λ2={opts.leaf_density}"
     leaves = leaf_level(top, tri, sub_res, opts, asked, phases)
     if opts.skip == "distance":
-        t1 = time.perf_counter()
-        rx, ry, rz = (int(r) for r in top.res)
-        skip = chessboard_distance(top.cell_start, rx, ry, rz)
-        top = dataclasses.replace(top, skip_kind=SKIP_DISTANCE, skip=skip)
-        phases["skip"] = (time.perf_counter() - t1) * 1e3
+        top = add_skip(top, SKIP_DISTANCE, phases)
     return TwoLevelGrid(
-        top=top,
-        sub_res=leaves.sub_res,
-        leaf_first=leaves.leaf_first,
-        leaf_size=leaves.leaf_size,
-        leaf_start=leaves.leaf_start,
-        prim_index=leaves.prim_index,
-        n_prims=top.n_prims,
-        leaf_density=float(opts.leaf_density),
-        phase_ms=phases,
-    )
+        top=top, **leaves._asdict(), n_prims=top.n_prims,
+        leaf_density=float(opts.leaf_density), phase_ms=phases,
+    )  # fmt: skip

@@ -261,6 +261,24 @@ def cell_ranges(keys, n_cells):
     return start
 
 
+def sort_pairs(
+    keys: np.ndarray, values: np.ndarray, n_cells: int, phases: dict[str, float], prefix: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sort (cell, primitive) pairs by cell; return ``(cell_start, primitives in cell order)``.
+
+    The radix sort and the cell ranges (:func:`cell_ranges`) are timed into
+    ``phases[prefix + "sort"]`` and ``phases[prefix + "ranges"]``. Shared by the
+    uniform grid and the leaf level of the two-level grid.
+    """
+    t1 = time.perf_counter()
+    keys, values = radix_sort(keys, values, max(1, (n_cells - 1).bit_length()))
+    phases[prefix + "sort"] = (time.perf_counter() - t1) * 1e3
+    t1 = time.perf_counter()
+    cell_start = cell_ranges(keys, n_cells)
+    phases[prefix + "ranges"] = (time.perf_counter() - t1) * 1e3
+    return cell_start, values
+
+
 def build_uniform(
     mesh: TriangleMesh, options: UniformGridOptions, key: str
 ) -> tuple[UniformGrid, np.ndarray]:
@@ -322,12 +340,7 @@ def build_uniform(
     values = np.empty(n_refs, dtype=np.int32)
     _pairs(tri, lo, size, margin, res, first, last, counts, offsets, keys, values, True)
     phases["fill"] = (time.perf_counter() - t1) * 1e3
-    t1 = time.perf_counter()
-    keys, values = radix_sort(keys, values, max(1, (n_cells - 1).bit_length()))
-    phases["sort"] = (time.perf_counter() - t1) * 1e3
-    t1 = time.perf_counter()
-    cell_start = cell_ranges(keys, n_cells)
-    phases["ranges"] = (time.perf_counter() - t1) * 1e3
+    cell_start, values = sort_pairs(keys, values, n_cells, phases, "")
     grid = UniformGrid(
         lo=lo,
         hi=hi,
@@ -356,15 +369,7 @@ def build_uniform_grid(
 ) -> UniformGrid:
     """Build a uniform grid over ``mesh``'s triangles.
 
-    Parameters
-    ----------
-    mesh : TriangleMesh
-    options : UniformGridOptions, optional
-
-    Returns
-    -------
-    UniformGrid
-        With no skip data (``grid.skip`` then walks it like ``grid.dda``).
+    The grid has no skip data (``grid.skip`` then walks it like ``grid.dda``).
 
     Raises
     ------

@@ -37,6 +37,7 @@ from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import StructureInvariantError
 from rayaccel.grid.layouts.uniform import (
+    ListedRefs,
     gather_rows,
     interleaved_box,
     validate_box,
@@ -108,7 +109,7 @@ class IrregularTrace(NamedTuple):
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class IrregularGrid:
+class IrregularGrid(ListedRefs):
     """Irregular grid (see the module docstring).
 
     Attributes
@@ -168,11 +169,6 @@ class IrregularGrid:
     def n_cells(self) -> int:
         """Number of cells (after merging)."""
         return int(self.cell_start.shape[0] - 1)
-
-    @property
-    def n_refs(self) -> int:
-        """Number of cell/primitive references."""
-        return int(self.prim_index.shape[0])
 
     def nbytes(self) -> int:
         """Return the canonical size in bytes (voxel map, boxes, ranges, references)."""

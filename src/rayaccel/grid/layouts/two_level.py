@@ -24,6 +24,7 @@ import numpy as np
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import StructureInvariantError
 from rayaccel.grid.layouts.uniform import (
+    ListedRefs,
     UniformGrid,
     gather_rows,
     interleaved_box,
@@ -53,7 +54,7 @@ class TwoLevelTrace(NamedTuple):
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class TwoLevelGrid:
+class TwoLevelGrid(ListedRefs):
     """Two-level grid (see the module docstring).
 
     Attributes
@@ -96,11 +97,6 @@ class TwoLevelGrid:
     def n_leaves(self) -> int:
         """Number of leaf cells."""
         return int(self.leaf_start.shape[0] - 1)
-
-    @property
-    def n_refs(self) -> int:
-        """Number of leaf cell/primitive references."""
-        return int(self.prim_index.shape[0])
 
     def nbytes(self) -> int:
         """Return the canonical size in bytes (both levels)."""

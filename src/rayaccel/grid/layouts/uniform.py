@@ -128,8 +128,20 @@ class UniformGridArrays(NamedTuple):
     skip: np.ndarray
 
 
+class ListedRefs:
+    """``n_refs`` of a grid whose cells (or leaf cells) list ``prim_index`` (every grid layout)."""
+
+    __slots__ = ()
+    prim_index: IntArray
+
+    @property
+    def n_refs(self) -> int:
+        """Number of cell/primitive references."""
+        return int(self.prim_index.shape[0])
+
+
 @dataclass(frozen=True, slots=True, eq=False)
-class UniformGrid:
+class UniformGrid(ListedRefs):
     """Uniform grid; cell ``(x, y, z)`` is ``x + rx·(y + ry·z)`` (see the module docstring).
 
     Attributes
@@ -175,11 +187,6 @@ class UniformGrid:
     def n_cells(self) -> int:
         """Number of cells."""
         return int(self.cell_start.shape[0] - 1)
-
-    @property
-    def n_refs(self) -> int:
-        """Number of cell/primitive references."""
-        return int(self.prim_index.shape[0])
 
     def nbytes(self) -> int:
         """Return the canonical size in bytes (cell ranges, references, skip data)."""

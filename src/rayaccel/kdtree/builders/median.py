@@ -11,9 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from rayaccel._variant import register
-from rayaccel.errors import InvalidInputError
 from rayaccel.kdtree.builders.sweep import MAX_DUPLICATION, MODE_MEDIAN, SweepParams, build_sweep
-from rayaccel.kdtree.layouts.kdtree import MAX_DEPTH, KdTree
+from rayaccel.kdtree.layouts.kdtree import MAX_DEPTH, KdTree, check_build_options
 from rayaccel.scene.mesh import TriangleMesh
 
 
@@ -30,16 +29,10 @@ class KdMedianOptions:
     perfect_splits : bool
         Clip straddling triangles to each child cell (True) or cut their boxes.
     parallel_threshold : int
-        After the top levels, subtrees of at most ``max(parallel_threshold, N/64)``
-        triangles are built concurrently (0: serially). The tree does not depend on it
-        nor on the thread count, up to node numbering.
+        Subtree size of the concurrent phase, as for ``kdtree.sah``
+        (:class:`~rayaccel.kdtree.builders.sah.KdSahOptions`).
     max_duplication : float
-        Most references a path may accumulate, as a multiple of its root's (>= 1; the
-        product of ``(N_L + N_R) / N`` over its splits). Bounds the references of the
-        whole tree by ``max_duplication·N`` at each depth, where long slivers crossing
-        many cells (a fan around one vertex) otherwise grow them as ``N²``
-        (:mod:`rayaccel.kdtree.builders.sweep`; on the benchmark scenes the default
-        trims a few small nodes only).
+        Bound on the references a path accumulates, as for ``kdtree.sah``.
     """
 
     max_leaf_size: int = 4
@@ -49,18 +42,9 @@ class KdMedianOptions:
     max_duplication: float = MAX_DUPLICATION
 
     def __post_init__(self) -> None:
-        if self.max_leaf_size < 1:
-            raise InvalidInputError(f"max_leaf_size must be >= 1, got {self.max_leaf_size}")
-        if self.parallel_threshold < 0:
-            raise InvalidInputError(
-                f"parallel_threshold must be >= 0, got {self.parallel_threshold}"
-            )
-        if not self.max_duplication >= 1:
-            raise InvalidInputError(
-                f"max_duplication must be >= 1, got {self.max_duplication}"
-            )
-        if not 1 <= self.max_depth <= MAX_DEPTH:
-            raise InvalidInputError(f"max_depth must be in 1..{MAX_DEPTH}, got {self.max_depth}")
+        check_build_options(
+            self.max_depth, self.max_leaf_size, self.parallel_threshold, self.max_duplication
+        )
 
 
 @register(
@@ -71,17 +55,7 @@ class KdMedianOptions:
     reference="Kaplan 1985, Space-tracing: a constant time ray-tracer",
 )
 def build_kdtree_median(mesh: TriangleMesh, options: KdMedianOptions | None = None) -> KdTree:
-    """Build a kd-tree by spatial median splits.
-
-    Parameters
-    ----------
-    mesh : TriangleMesh
-    options : KdMedianOptions, optional
-
-    Returns
-    -------
-    KdTree
-    """
+    """Build a kd-tree by spatial median splits."""
     opt = options or KdMedianOptions()
     params = SweepParams(
         MODE_MEDIAN, 1.0, 1.0, 1.0, int(opt.max_depth), int(opt.max_leaf_size),

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from rayaccel._variant import register
 from rayaccel.errors import InvalidInputError
 from rayaccel.kdtree.builders.sweep import MAX_DUPLICATION, MODE_SAH, SweepParams, build_sweep
-from rayaccel.kdtree.layouts.kdtree import MAX_DEPTH, KdTree
+from rayaccel.kdtree.layouts.kdtree import MAX_DEPTH, KdTree, check_build_options
 from rayaccel.scene.mesh import TriangleMesh
 
 
@@ -66,18 +66,9 @@ class KdSahOptions:
             raise InvalidInputError("traversal_cost and intersection_cost must be > 0")
         if not 0 < self.empty_bonus <= 1:
             raise InvalidInputError(f"empty_bonus must be in (0, 1], got {self.empty_bonus}")
-        if not 1 <= self.max_depth <= MAX_DEPTH:
-            raise InvalidInputError(f"max_depth must be in 1..{MAX_DEPTH}, got {self.max_depth}")
-        if self.max_leaf_size < 1:
-            raise InvalidInputError(f"max_leaf_size must be >= 1, got {self.max_leaf_size}")
-        if self.parallel_threshold < 0:
-            raise InvalidInputError(
-                f"parallel_threshold must be >= 0, got {self.parallel_threshold}"
-            )
-        if not self.max_duplication >= 1:
-            raise InvalidInputError(
-                f"max_duplication must be >= 1, got {self.max_duplication}"
-            )
+        check_build_options(
+            self.max_depth, self.max_leaf_size, self.parallel_threshold, self.max_duplication
+        )
 
 
 @register(
@@ -92,15 +83,7 @@ class KdSahOptions:
 def build_kdtree_sah(mesh: TriangleMesh, options: KdSahOptions | None = None) -> KdTree:
     """Build a kd-tree with the surface area heuristic.
 
-    Parameters
-    ----------
-    mesh : TriangleMesh
-    options : KdSahOptions, optional
-
-    Returns
-    -------
-    KdTree
-        Depth at most ``min(max_depth, 8 + 1.3·log2 N)``.
+    The tree's depth is at most ``min(max_depth, 8 + 1.3·log2 N)``.
     """
     opt = options or KdSahOptions()
     params = SweepParams(

@@ -77,6 +77,7 @@ import numpy as np
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, KdTree, max_depth_for
+from rayaccel.kernels.box_grow import store_box
 from rayaccel.kernels.clip import clip_triangle_box, polygon_bounds
 from rayaccel.kernels.radix_sort import radix_sort
 from rayaccel.scene.mesh import TriangleMesh
@@ -262,6 +263,48 @@ def _grow_f(a, need):
     return b
 
 
+@cpu_inline
+def _new_events(n):
+    """Return uninitialised event arrays ``(pos, typ, axis, prim)`` for ``n`` events."""
+    return (
+        np.empty(n, dtype=np.float32),
+        np.empty(n, dtype=np.int8),
+        np.empty(n, dtype=np.int8),
+        np.empty(n, dtype=np.int32),
+    )
+
+
+@cpu_inline
+def _grow_events(pos, typ, axis, prim, need):
+    """Return the event arrays, each grown to at least ``need`` (:func:`_grow_f`)."""
+    return _grow_f(pos, need), _grow_f(typ, need), _grow_f(axis, need), _grow_f(prim, need)
+
+
+@cpu_inline
+def _copy_events(pos, typ, axis, prim, at, from_pos, from_typ, from_axis, from_prim, begin, end):
+    """Copy events ``begin:end`` of the ``from_*`` arrays to the event arrays from ``at``."""
+    stop = at + (end - begin)
+    pos[at:stop] = from_pos[begin:end]
+    typ[at:stop] = from_typ[begin:end]
+    axis[at:stop] = from_axis[begin:end]
+    prim[at:stop] = from_prim[begin:end]
+
+
+@cpu_inline
+def _copy_event(pos, typ, axis, prim, j, from_pos, from_typ, from_axis, from_prim, i):
+    """Copy event ``i`` of the ``from_*`` arrays to event ``j`` of the event arrays."""
+    _set_event(pos, typ, axis, prim, j, from_pos[i], from_typ[i], from_axis[i], from_prim[i])
+
+
+@cpu_inline
+def _set_event(pos, typ, axis, prim, j, p, t, a, pr):
+    """Write event ``j``: position ``p``, type ``t``, axis ``a``, triangle ``pr``."""
+    pos[j] = p
+    typ[j] = t
+    axis[j] = a
+    prim[j] = pr
+
+
 @cpu_kernel()
 def _half_area(lo0, lo1, lo2, hi0, hi1, hi2):
     ex = np.float64(hi0) - lo0
@@ -301,25 +344,13 @@ def _build_kernel(
     max_depth = params.max_depth
     # Event buffer used as a stack (see the module docstring).
     cap = max(3 * pos0.shape[0], 16)
-    e_pos = np.empty(cap, dtype=np.float32)
-    e_typ = np.empty(cap, dtype=np.int8)
-    e_axis = np.empty(cap, dtype=np.int8)
-    e_prim = np.empty(cap, dtype=np.int32)
+    e_pos, e_typ, e_axis, e_prim = _new_events(cap)
     m0 = pos0.shape[0]
-    e_pos[:m0] = pos0
-    e_typ[:m0] = typ0
-    e_axis[:m0] = axis0
-    e_prim[:m0] = prim0
+    _copy_events(e_pos, e_typ, e_axis, e_prim, 0, pos0, typ0, axis0, prim0, 0, m0)
     # Per-node scratch: kept and new events of one child, sides, clipping buffers.
     tmp_cap = max(m0, 16)
-    k_pos = np.empty(tmp_cap, dtype=np.float32)
-    k_typ = np.empty(tmp_cap, dtype=np.int8)
-    k_axis = np.empty(tmp_cap, dtype=np.int8)
-    k_prim = np.empty(tmp_cap, dtype=np.int32)
-    n_pos = np.empty(tmp_cap, dtype=np.float32)
-    n_typ = np.empty(tmp_cap, dtype=np.int8)
-    n_axis = np.empty(tmp_cap, dtype=np.int8)
-    n_prim = np.empty(tmp_cap, dtype=np.int32)
+    k_pos, k_typ, k_axis, k_prim = _new_events(tmp_cap)
+    n_pos, n_typ, n_axis, n_prim = _new_events(tmp_cap)
     side = np.zeros(n_prims, dtype=np.int8)
     poly = np.empty((16, 3), dtype=np.float64)
     poly_tmp = np.empty((16, 3), dtype=np.float64)
@@ -366,10 +397,7 @@ def _build_kernel(
     t_dup = np.empty(16, dtype=np.float64)
     t_cell = np.empty(96, dtype=np.float32)
     t_range = np.empty(32, dtype=np.int64)
-    tp_pos = np.empty(16, dtype=np.float32)
-    tp_typ = np.empty(16, dtype=np.int8)
-    tp_axis = np.empty(16, dtype=np.int8)
-    tp_prim = np.empty(16, dtype=np.int32)
+    tp_pos, tp_typ, tp_axis, tp_prim = _new_events(16)
     for a in range(3):
         s_lo[0, a] = scene_lo[a]
         s_hi[0, a] = scene_hi[a]
@@ -395,14 +423,11 @@ def _build_kernel(
             t_cell = _grow_f(t_cell, 6 * (n_tasks + 1))
             t_range = _grow_f(t_range, 2 * (n_tasks + 1))
             stop = n_task_events + (end - begin)
-            tp_pos = _grow_f(tp_pos, stop)
-            tp_typ = _grow_f(tp_typ, stop)
-            tp_axis = _grow_f(tp_axis, stop)
-            tp_prim = _grow_f(tp_prim, stop)
-            tp_pos[n_task_events:stop] = e_pos[begin:end]
-            tp_typ[n_task_events:stop] = e_typ[begin:end]
-            tp_axis[n_task_events:stop] = e_axis[begin:end]
-            tp_prim[n_task_events:stop] = e_prim[begin:end]
+            tp_pos, tp_typ, tp_axis, tp_prim = _grow_events(tp_pos, tp_typ, tp_axis, tp_prim, stop)
+            _copy_events(
+                tp_pos, tp_typ, tp_axis, tp_prim, n_task_events, e_pos, e_typ, e_axis, e_prim,
+                begin, end,
+            )  # fmt: skip
             t_node[n_tasks] = node
             t_n[n_tasks] = n
             t_depth[n_tasks] = depth
@@ -572,22 +597,13 @@ def _build_kernel(
         left_cap = right_cap
         need = child_begin + right_cap + left_cap
         if need > e_pos.shape[0]:
-            e_pos = _grow_f(e_pos, need)
-            e_typ = _grow_f(e_typ, need)
-            e_axis = _grow_f(e_axis, need)
-            e_prim = _grow_f(e_prim, need)
+            e_pos, e_typ, e_axis, e_prim = _grow_events(e_pos, e_typ, e_axis, e_prim, need)
         # A node may hold more events than the root: a triangle planar in an axis gets a
         # start and an end there once clipped (its bounds are padded outward).
         if end - begin > k_pos.shape[0]:
-            k_pos = _grow_f(k_pos, end - begin)
-            k_typ = _grow_f(k_typ, end - begin)
-            k_axis = _grow_f(k_axis, end - begin)
-            k_prim = _grow_f(k_prim, end - begin)
+            k_pos, k_typ, k_axis, k_prim = _grow_events(k_pos, k_typ, k_axis, k_prim, end - begin)
         if n_new_max > n_pos.shape[0]:
-            n_pos = _grow_f(n_pos, n_new_max)
-            n_typ = _grow_f(n_typ, n_new_max)
-            n_axis = _grow_f(n_axis, n_new_max)
-            n_prim = _grow_f(n_prim, n_new_max)
+            n_pos, n_typ, n_axis, n_prim = _grow_events(n_pos, n_typ, n_axis, n_prim, n_new_max)
         if n_both > both_bounds.shape[0]:
             both_bounds = np.empty((2 * n_both, 6), dtype=np.float32)
             keep = np.empty(2 * n_both, dtype=np.int8)
@@ -615,10 +631,9 @@ def _build_kernel(
             n_kept = 0
             for i in range(begin, end):
                 if side[e_prim[i]] == this_side:
-                    k_pos[n_kept] = e_pos[i]
-                    k_typ[n_kept] = e_typ[i]
-                    k_axis[n_kept] = e_axis[i]
-                    k_prim[n_kept] = e_prim[i]
+                    _copy_event(
+                        k_pos, k_typ, k_axis, k_prim, n_kept, e_pos, e_typ, e_axis, e_prim, i
+                    )
                     n_kept += 1
             # New events of the straddling triangles, axis by axis.
             j = 0
@@ -683,22 +698,12 @@ def _build_kernel(
                         if bhi == 0:
                             bhi = np.float32(0.0)
                         if blo == bhi:
-                            n_pos[n_new] = blo
-                            n_typ[n_new] = PLANAR
-                            n_axis[n_new] = a
-                            n_prim[n_new] = pr
+                            _set_event(n_pos, n_typ, n_axis, n_prim, n_new, blo, PLANAR, a, pr)
                             n_new += 1
                         else:
-                            n_pos[n_new] = blo
-                            n_typ[n_new] = START
-                            n_axis[n_new] = a
-                            n_prim[n_new] = pr
-                            n_new += 1
-                            n_pos[n_new] = bhi
-                            n_typ[n_new] = END
-                            n_axis[n_new] = a
-                            n_prim[n_new] = pr
-                            n_new += 1
+                            _set_event(n_pos, n_typ, n_axis, n_prim, n_new, blo, START, a, pr)
+                            _set_event(n_pos, n_typ, n_axis, n_prim, n_new + 1, bhi, END, a, pr)
+                            n_new += 2
                         j += 1
                 # Sort this axis's few new events by (position, type): stable sorts.
                 cnt = n_new - seg
@@ -725,16 +730,14 @@ def _build_kernel(
                     )
                 )
                 if take_a:
-                    e_pos[write] = k_pos[ia]
-                    e_typ[write] = k_typ[ia]
-                    e_axis[write] = k_axis[ia]
-                    e_prim[write] = k_prim[ia]
+                    _copy_event(
+                        e_pos, e_typ, e_axis, e_prim, write, k_pos, k_typ, k_axis, k_prim, ia
+                    )
                     ia += 1
                 else:
-                    e_pos[write] = n_pos[ib]
-                    e_typ[write] = n_typ[ib]
-                    e_axis[write] = n_axis[ib]
-                    e_prim[write] = n_prim[ib]
+                    _copy_event(
+                        e_pos, e_typ, e_axis, e_prim, write, n_pos, n_typ, n_axis, n_prim, ib
+                    )
                     ib += 1
                 write += 1
             # Push the child: right first (popped last).
@@ -744,12 +747,7 @@ def _build_kernel(
             s_n[sp] = (n_right if half == 0 else n_left) + n_both - dropped
             s_depth[sp] = depth + 1
             s_dup[sp] = dup * (n + n_both) / n
-            s_lo[sp, 0] = h_lo0
-            s_lo[sp, 1] = h_lo1
-            s_lo[sp, 2] = h_lo2
-            s_hi[sp, 0] = h_hi0
-            s_hi[sp, 1] = h_hi1
-            s_hi[sp, 2] = h_hi2
+            store_box(s_lo, s_hi, sp, (h_lo0, h_lo1, h_lo2, h_hi0, h_hi1, h_hi2))
             sp += 1
     return (
         out_split[:n_nodes].copy(),

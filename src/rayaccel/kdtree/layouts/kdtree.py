@@ -28,10 +28,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
-from rayaccel.errors import StructureInvariantError
+from rayaccel.errors import InvalidInputError, StructureInvariantError
+from rayaccel.kernels.box_grow import load_box, store_box
 from rayaccel.kernels.overlap import triangle_box_overlap
+from rayaccel.kernels.structure_checks import check_prims_listed
+from rayaccel.kernels.triangle import triangle_edges64
 
 #: Deepest tree any kd builder may emit; traversal stacks hold STACK_SIZE >= MAX_DEPTH entries.
 MAX_DEPTH = 60
@@ -53,6 +56,23 @@ SLIVER = 2.0**-40
 def max_depth_for(n_prims: int) -> int:
     """Return the depth cap ``8 + 1.3·log2 N`` (pbrt), at most :data:`MAX_DEPTH`."""
     return int(min(MAX_DEPTH, round(8 + 1.3 * np.log2(max(n_prims, 1)))))
+
+
+def check_build_options(
+    max_depth: int, max_leaf_size: int, parallel_threshold: int, max_duplication: float
+) -> None:
+    """Raise :class:`InvalidInputError` for an out-of-range option every kd builder has.
+
+    Shared by ``kdtree.sah`` and ``kdtree.median`` (their costs are their own).
+    """
+    if not 1 <= max_depth <= MAX_DEPTH:
+        raise InvalidInputError(f"max_depth must be in 1..{MAX_DEPTH}, got {max_depth}")
+    if max_leaf_size < 1:
+        raise InvalidInputError(f"max_leaf_size must be >= 1, got {max_leaf_size}")
+    if parallel_threshold < 0:
+        raise InvalidInputError(f"parallel_threshold must be >= 0, got {parallel_threshold}")
+    if not max_duplication >= 1:
+        raise InvalidInputError(f"max_duplication must be >= 1, got {max_duplication}")
 
 
 class KdArrays(NamedTuple):
@@ -219,16 +239,7 @@ class KdTree:
         code, where = _check_topology(self.arrays(), MAX_DEPTH)
         if code != 0:
             raise StructureInvariantError(f"kdtree: node {where}: {_TOPOLOGY_ERRORS[code]}")
-        if self.prim_index.size and (
-            self.prim_index.min() < 0 or self.prim_index.max() >= self.n_prims
-        ):
-            raise StructureInvariantError("kdtree: prim_index entry out of range [0, n_prims)")
-        referenced = np.zeros(self.n_prims, dtype=bool)
-        referenced[self.prim_index] = True
-        if not referenced.all():
-            raise StructureInvariantError(
-                f"kdtree: primitive {int(np.argmin(referenced))} is in no leaf"
-            )
+        check_prims_listed(self.prim_index, self.n_prims, "kdtree")
         leaf_of_ref = np.full(self.n_refs, -1, dtype=np.int64)
         for leaf in np.flatnonzero(self.leaf_count):
             first = self.leaf_first[leaf]
@@ -311,16 +322,10 @@ def _check_topology(kd, max_depth):
     n_refs = kd.prim_index.shape[0]
     seen = np.zeros(n, dtype=np.uint8)
     leaf_seen = np.zeros(n_leaves, dtype=np.uint8)
-    stack = np.empty(max_depth + 2, dtype=np.int32)
+    stack, lo, hi = new_descent(max_depth, kd.lo)
     depth_of = np.empty(max_depth + 2, dtype=np.int32)
-    lo = np.empty((max_depth + 2, 3), dtype=np.float32)
-    hi = np.empty((max_depth + 2, 3), dtype=np.float32)
-    stack[0] = 0
     depth_of[0] = 0
-    for a in range(3):
-        lo[0, a] = kd.lo[a]
-        hi[0, a] = kd.hi[a]
-    sp = 1
+    sp = start_descent(stack, lo, hi, kd.lo, kd.hi)
     while sp > 0:
         sp -= 1
         node = stack[sp]
@@ -393,12 +398,7 @@ def _check_listed_overlap(tri, prim_index, leaf_of_ref, node_of_leaf, lo, hi, ex
     for ref in range(prim_index.shape[0]):
         node = node_of_leaf[leaf_of_ref[ref]]
         p = prim_index[ref]
-        e1x = np.float64(tri[p, 1, 0]) - tri[p, 0, 0]
-        e1y = np.float64(tri[p, 1, 1]) - tri[p, 0, 1]
-        e1z = np.float64(tri[p, 1, 2]) - tri[p, 0, 2]
-        e2x = np.float64(tri[p, 2, 0]) - tri[p, 0, 0]
-        e2y = np.float64(tri[p, 2, 1]) - tri[p, 0, 1]
-        e2z = np.float64(tri[p, 2, 2]) - tri[p, 0, 2]
+        e1x, e1y, e1z, e2x, e2y, e2z = triangle_edges64(tri, p)
         area2 = abs(e1y * e2z - e1z * e2y) + abs(e1z * e2x - e1x * e2z) + abs(e1x * e2y - e1y * e2x)
         if exact and area2 == 0.0:
             continue
@@ -418,6 +418,54 @@ def _check_listed_overlap(tri, prim_index, leaf_of_ref, node_of_leaf, lo, hi, ex
     return -1
 
 
+@cpu_inline
+def new_descent(max_depth, box_lo):
+    """Return ``(stack, s_lo, s_hi)`` for a walk down a tree of depth ``<= max_depth``.
+
+    Node ids and cell corners, one entry per stack slot; the cells have ``box_lo``'s
+    float type. :func:`start_descent` puts the root on the stack.
+    """
+    n = max_depth + 2
+    return (
+        np.empty(n, dtype=np.int32),
+        np.empty((n, 3), dtype=box_lo.dtype),
+        np.empty((n, 3), dtype=box_lo.dtype),
+    )
+
+
+@cpu_inline
+def start_descent(stack, s_lo, s_hi, lo, hi):
+    """Put the root (node 0, cell ``lo``..``hi``) on a descent's stack; return ``sp = 1``."""
+    stack[0] = 0
+    for a in range(3):
+        s_lo[0, a] = lo[a]
+        s_hi[0, a] = hi[a]
+    return 1
+
+
+@cpu_inline
+def push_reached_children(stack, s_lo, s_hi, sp, child, axis, split, lower, upper):
+    """Replace entry ``sp`` of a descent by a box by the children the box reaches; return ``sp``.
+
+    Entry ``sp`` is an inner node whose cell is ``s_lo[sp]``..``s_hi[sp]``; its upper
+    child ``child + 1`` (when ``upper``: the box reaches ``split``) is pushed first,
+    then its lower child ``child`` (when ``lower``), each with its cell. Shared by the
+    completeness check and the float64 listing of :mod:`rayaccel.kdtree.precision`.
+    """
+    cell = load_box(s_lo, s_hi, sp)
+    if upper:
+        stack[sp] = child + 1
+        store_box(s_lo, s_hi, sp, cell)
+        s_lo[sp, axis] = split
+        sp += 1
+    if lower:
+        stack[sp] = child
+        store_box(s_lo, s_hi, sp, cell)
+        s_hi[sp, axis] = split
+        sp += 1
+    return sp
+
+
 @cpu_kernel()
 def _check_complete(tri, kd, sorted_pairs, n_prims, max_depth):
     """Return ``(prim, leaf)`` of a triangle overlapping an open leaf cell it is not listed in.
@@ -426,9 +474,7 @@ def _check_complete(tri, kd, sorted_pairs, n_prims, max_depth):
     shrunk on every side (see below), it overlaps exactly, the pair (leaf, prim) must
     be in ``sorted_pairs``. Returns ``(-1, -1)`` when every triangle is complete.
     """
-    stack = np.empty(max_depth + 2, dtype=np.int32)
-    s_lo = np.empty((max_depth + 2, 3), dtype=np.float32)
-    s_hi = np.empty((max_depth + 2, 3), dtype=np.float32)
+    stack, s_lo, s_hi = new_descent(max_depth, kd.lo)
     c_lo = np.empty(3, dtype=np.float32)
     c_hi = np.empty(3, dtype=np.float32)
     t_lo = np.empty(3, dtype=np.float32)
@@ -446,11 +492,7 @@ def _check_complete(tri, kd, sorted_pairs, n_prims, max_depth):
         for a in range(3):
             t_lo[a] = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
             t_hi[a] = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
-        stack[0] = 0
-        for a in range(3):
-            s_lo[0, a] = kd.lo[a]
-            s_hi[0, a] = kd.hi[a]
-        sp = 1
+        sp = start_descent(stack, s_lo, s_hi, kd.lo, kd.hi)
         while sp > 0:
             sp -= 1
             node = stack[sp]
@@ -470,36 +512,11 @@ def _check_complete(tri, kd, sorted_pairs, n_prims, max_depth):
                     if at >= sorted_pairs.shape[0] or sorted_pairs[at] != key:
                         return p, leaf
                 continue
-            child = bits >> 2
             split = kd.node_split[node]
-            lower = t_lo[axis] <= split
-            upper = t_hi[axis] >= split
-            base_lo0 = s_lo[sp, 0]
-            base_lo1 = s_lo[sp, 1]
-            base_lo2 = s_lo[sp, 2]
-            base_hi0 = s_hi[sp, 0]
-            base_hi1 = s_hi[sp, 1]
-            base_hi2 = s_hi[sp, 2]
-            if upper:
-                stack[sp] = child + 1
-                s_lo[sp, 0] = base_lo0
-                s_lo[sp, 1] = base_lo1
-                s_lo[sp, 2] = base_lo2
-                s_hi[sp, 0] = base_hi0
-                s_hi[sp, 1] = base_hi1
-                s_hi[sp, 2] = base_hi2
-                s_lo[sp, axis] = split
-                sp += 1
-            if lower:
-                stack[sp] = child
-                s_lo[sp, 0] = base_lo0
-                s_lo[sp, 1] = base_lo1
-                s_lo[sp, 2] = base_lo2
-                s_hi[sp, 0] = base_hi0
-                s_hi[sp, 1] = base_hi1
-                s_hi[sp, 2] = base_hi2
-                s_hi[sp, axis] = split
-                sp += 1
+            sp = push_reached_children(
+                stack, s_lo, s_hi, sp, bits >> 2, axis, split, t_lo[axis] <= split,
+                t_hi[axis] >= split,
+            )  # fmt: skip
     return -1, -1
 
 
