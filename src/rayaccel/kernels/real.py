@@ -26,11 +26,10 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic, overload
 
-from rayaccel._jit import FASTMATH, next_up_float32
+from rayaccel._jit import FASTMATH, next_up_float32, next_up_float64
 
 
 def next_up(x: Any) -> Any:
@@ -46,27 +45,6 @@ def as_real_like(x: Any, ref: Any) -> Any:
 def edge_function(a: Any, b: Any, c: Any, d: Any) -> Any:
     """Return ``a*b - c*d`` computed in float64 (exact products for float32 operands)."""
     return np.float64(a) * np.float64(b) - np.float64(c) * np.float64(d)
-
-
-@intrinsic
-def next_up_float64(typingctx: Any, x: Any) -> Any:
-    """``np.nextafter(x, inf)`` for a float64, inline: the bit trick of ``next_up_float32``."""
-    sig = types.float64(types.float64)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        value = args[0]
-        i64 = ir.IntType(64)
-        f64 = ir.DoubleType()
-        bits = builder.bitcast(value, i64)
-        positive = builder.icmp_signed(">=", bits, i64(0))
-        stepped = builder.select(positive, builder.add(bits, i64(1)), builder.sub(bits, i64(1)))
-        is_zero = builder.fcmp_ordered("==", value, f64(0.0))
-        stepped = builder.bitcast(builder.select(is_zero, i64(1), stepped), f64)
-        is_nan = builder.fcmp_unordered("uno", value, value)
-        is_inf = builder.fcmp_ordered("==", value, f64(float("inf")))
-        return builder.select(builder.or_(is_nan, is_inf), value, stepped)
-
-    return sig, codegen
 
 
 #: The fast-math flags of the float64 edge function: ``FASTMATH`` without ``contract``.
