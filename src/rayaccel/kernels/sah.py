@@ -49,10 +49,7 @@ def bounds_half_area_py(bounds):
 
     The form for a box grown in registers (:func:`rayaccel.kernels.box_grow.union_bounds`).
     """
-    ex = np.float64(bounds[3]) - bounds[0]
-    ey = np.float64(bounds[4]) - bounds[1]
-    ez = np.float64(bounds[5]) - bounds[2]
-    return ex * ey + ey * ez + ez * ex
+    return box_half_area(bounds[0], bounds[1], bounds[2], bounds[3], bounds[4], bounds[5])
 
 
 def node_half_area_py(lo, hi, i):
