@@ -149,6 +149,47 @@ def test_refit_reuses_the_known_sah_of_the_tree_it_refits(sphere, monkeypatch):
     assert len(passes) == 2
 
 
+def test_refit_topology_is_found_once_per_tree_and_dropped_on_rebuild(sphere, monkeypatch):
+    """The parent links and leaf-order corners are found on the first refit of a tree and
+    kept (the topology and faces never move); a rebuild makes a new tree, so they are found
+    again. Kept or found afresh, the boxes are the same."""
+    accel = rayaccel.build(sphere, "bvh2.binned_sah", max_leaf_size=2)
+    found = []
+    original = rayaccel.refit.refit_topology
+    monkeypatch.setattr(rayaccel.refit, "refit_topology",
+                        lambda bvh, faces: found.append(1) or original(bvh, faces))  # fmt: skip
+    for frame, ratio in ((1, None), (2, None), (3, 1.0001), (4, None)):
+        report = accel.refit(wave(sphere, frame), rebuild_if_worse=ratio)
+        fresh = refit_bvh2(accel.structure, accel.mesh.vertices, accel.mesh.faces)
+        if report["method"] == "refit":
+            assert np.array_equal(accel.structure.node_lo, fresh.node_lo)
+            assert np.array_equal(accel.structure.node_hi, fresh.node_hi)
+    assert report["method"] == "refit"
+    # Frames 1 and 2 share one; frame 3 refits with it, then rebuilds; frame 4 finds anew.
+    assert len(found) == 2
+    topology = refit_vertices.refit_topology(accel.structure, accel.mesh.faces)
+    assert np.array_equal(topology.corners, sphere.faces[accel.structure.prim_index])
+    inner = np.flatnonzero(accel.structure.node_count == 0)
+    assert topology.parent[0] == -1
+    assert np.array_equal(topology.parent[accel.structure.node_first[inner]], inner)
+    assert np.array_equal(topology.parent[accel.structure.node_first[inner] + 1], inner)
+
+
+def test_with_vertices_shares_the_faces_and_checks_the_positions(sphere):
+    moved = sphere.with_vertices(wave(sphere, 1))
+    assert moved.faces is sphere.faces
+    assert moved.name == sphere.name
+    assert moved.vertices.dtype == np.float32
+    assert not moved.vertices.flags.writeable
+    assert np.array_equal(moved.vertices, wave(sphere, 1).astype(np.float32))
+    with pytest.raises(InvalidInputError, match="642 vertices"):
+        sphere.with_vertices(np.zeros((5, 3)))
+    bad = wave(sphere, 1)
+    bad[7, 1] = np.nan
+    with pytest.raises(InvalidInputError, match="vertex 7"):
+        sphere.with_vertices(bad)
+
+
 def test_rebuild_keeps_builder_steps_and_options(sphere):
     options = {"max_leaf_size": 2, "reinsert": {"max_iterations": 2}}
     accel = rayaccel.build(sphere, "bvh2.lbvh+reinsert", **options)

@@ -103,6 +103,8 @@ class Accel:
         self.build_sah: float | None = None
         #: The report of the last :meth:`refit` (also ``info()["refit"]``).
         self.last_refit: dict[str, Any] | None = None
+        #: What refits of this topology keep from one to the next (:mod:`rayaccel.refit`).
+        self._refit_memo: dict[str, Any] = {}
 
     def __repr__(self) -> str:
         return f"Accel({self.key!r}, {self.mesh!r})"
@@ -613,6 +615,7 @@ class Accel:
             rebuild=rebuild,
             structure_name=self.structure_name,
             sah_now=None if self.last_refit is None else self.last_refit["sah_after"],
+            memo=self._refit_memo,
         )
         with self._lock:
             outcome.report["dropped"] = sorted(k for k in self._cache if k != LAYOUT_MS)
@@ -621,6 +624,7 @@ class Accel:
             self.build_sah = outcome.build_sah
             self._cache = {}
             if outcome.rebuilt is not None:
+                self._refit_memo = {}
                 self.build_ms = outcome.rebuilt[0]
                 self.step_ms = dict(outcome.rebuilt[1])
             self.last_refit = outcome.report

@@ -34,7 +34,12 @@ from typing import Any
 
 import numpy as np
 
-from rayaccel.bvh.builders.refit_vertices import refit_bvh2, sah_of
+from rayaccel.bvh.builders.refit_vertices import (
+    RefitTopology,
+    refit_bvh2,
+    refit_topology,
+    sah_of,
+)
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.precision import conservative_bvh2
 from rayaccel.errors import InvalidInputError
@@ -116,12 +121,22 @@ def refitted_mesh(mesh: TriangleMesh, new_vertices: object) -> TriangleMesh:
             f"(the mesh's vertex count), got {array.shape}"
         )
     try:
-        return TriangleMesh(array, mesh.faces, mesh.name, precision=mesh.precision)
+        return mesh.with_vertices(array)
     except InvalidInputError as exc:
         message = str(exc)
         if message.startswith("vertices:"):
             message = "new_" + message
         raise InvalidInputError(message) from exc
+
+
+def _topology(memo: dict[str, Any] | None, bvh: Bvh2, mesh: TriangleMesh) -> RefitTopology:
+    """Return ``bvh``'s refit topology from ``memo``, finding and keeping it on first use."""
+    if memo is None:
+        return refit_topology(bvh, mesh.faces)
+    topology = memo.get("refit_topology")
+    if topology is None:
+        topology = memo["refit_topology"] = refit_topology(bvh, mesh.faces)
+    return topology  # type: ignore[no-any-return]
 
 
 def refit_structure(
@@ -134,6 +149,7 @@ def refit_structure(
     rebuild: Rebuild,
     structure_name: str,
     sah_now: float | None = None,
+    memo: dict[str, Any] | None = None,
 ) -> RefitOutcome:
     """Refit ``structure`` to ``new_vertices``, or rebuild it (see the module docstring).
 
@@ -158,6 +174,10 @@ def refit_structure(
     sah_now : float, optional
         SAH cost of ``structure`` as it is, when known (the last refit's
         ``sah_after``); otherwise computed (one pass over the nodes).
+    memo : dict, optional
+        Kept by the caller from one refit of this topology to the next: it holds the
+        :class:`~rayaccel.bvh.builders.refit_vertices.RefitTopology`, found on the first
+        refit. The caller starts a new one when the structure is rebuilt.
 
     Returns
     -------
@@ -193,7 +213,8 @@ def refit_structure(
             # Refitted and widened to contain the float64 triangles (bvh/precision.py).
             refitted = conservative_bvh2(structure, new_mesh)
         else:
-            refitted = refit_bvh2(structure, new_mesh.vertices, new_mesh.faces)
+            topology = _topology(memo, structure, new_mesh)
+            refitted = refit_bvh2(structure, new_mesh.vertices, new_mesh.faces, topology)
         report["refit_ms"] = (time.perf_counter() - refit_start) * 1e3
         sah_refit = sah_of(refitted)
         report["sah_refit"] = sah_refit

@@ -144,17 +144,48 @@ class TriangleMesh:
     ) -> None:
         check_precision(precision)
         coerced, exact = _coerce_vertices(vertices, precision)
-        if exact is not None:
-            exact.flags.writeable = False
+        self._set(coerced, exact, _coerce_faces(faces, coerced.shape[0]), name, precision)
+
+    def _set(
+        self,
+        vertices: FloatArray,
+        exact: npt.NDArray[np.float64] | None,
+        faces: IntArray,
+        name: str,
+        precision: str,
+    ) -> None:
+        """Set every field once (the dataclass is frozen) and make the arrays read-only."""
+        for array in (vertices, exact, faces):
+            if array is not None:
+                array.flags.writeable = False
         object.__setattr__(self, "precision", precision)
         object.__setattr__(self, "vertices64", exact)
-        # The dataclass is frozen: fields are set once, here, through object.__setattr__.
-        object.__setattr__(self, "vertices", coerced)
-        object.__setattr__(self, "faces", _coerce_faces(faces, coerced.shape[0]))
+        object.__setattr__(self, "vertices", vertices)
+        object.__setattr__(self, "faces", faces)
         object.__setattr__(self, "name", name)
         object.__setattr__(self, "_digest", None)
-        self.vertices.flags.writeable = False
-        self.faces.flags.writeable = False
+
+    def with_vertices(self, vertices: npt.ArrayLike) -> TriangleMesh:
+        """Return this mesh with new vertex positions: same faces, name and precision.
+
+        The positions are checked as the constructor checks them; the faces were checked
+        when this mesh was made and are shared, not checked again (a refit's frame of an
+        animation).
+
+        Raises
+        ------
+        InvalidInputError
+            Wrong shape, another vertex count, or a vertex the constructor refuses.
+        """
+        coerced, exact = _coerce_vertices(vertices, self.precision)
+        if coerced.shape[0] != self.n_vertices:
+            raise InvalidInputError(
+                f"vertices: expected {self.n_vertices} vertices (the mesh's count), "
+                f"got {coerced.shape[0]}"
+            )
+        mesh = object.__new__(TriangleMesh)
+        mesh._set(coerced, exact, self.faces, self.name, self.precision)
+        return mesh
 
     @property
     def n_triangles(self) -> int:

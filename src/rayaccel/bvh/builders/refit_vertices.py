@@ -10,8 +10,10 @@ orders of magnitude below a rebuild. The topology was chosen for the old geometr
 the tree's quality decays as the mesh moves away from it; :func:`sah_of` measures the
 SAH cost so the caller can rebuild once it has grown too much (Wald et al. 2007 §4.2).
 
-Parallelism follows Karras 2012 §4 (the bottom-up pass of his LBVH builder): one pass
-records every node's parent; then threads take blocks of nodes from a shared counter
+Parallelism follows Karras 2012 §4 (the bottom-up pass of his LBVH builder). Every
+node's parent and every reference's three vertex indices, in leaf order, are found once
+per tree (:class:`RefitTopology`; neither changes when the vertices move) and kept for
+the refits that follow. Threads take blocks of nodes from a shared counter
 (:mod:`rayaccel._work`), compute the box of each leaf in the block and climb towards the
 root. At each inner node the first thread to arrive flags it and stops; the second,
 which then finds both children done, writes the union and climbs on. The flag is a
@@ -32,13 +34,14 @@ splits' tightening is lost.
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 from typing import Any
 
 import numba
 import numpy as np
 from numba import prange
 
-from rayaccel._hugepages import empty_huge, zeros_huge
+from rayaccel._hugepages import zeros_huge
 from rayaccel._jit import atomic_exchange, cpu_kernel
 from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import Bvh2
@@ -58,37 +61,72 @@ BLOCK_NODES = 4096
 PARALLEL_MIN_NODES = 1 << 17
 
 
+@dataclass(frozen=True, slots=True)
+class RefitTopology:
+    """What every refit of one tree reads and none changes (the topology and the faces).
+
+    Attributes
+    ----------
+    parent : (n_nodes,) int32
+        Each node's parent (-1 at the root).
+    corners : (n_refs, 3) int32
+        The vertex indices of each reference's triangle, in leaf order
+        (``faces[prim_index]``): the leaf pass reads them in sequence instead of looking
+        up ``faces`` through ``prim_index`` at random.
+    """
+
+    parent: IntArray
+    corners: IntArray
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held."""
+        return int(self.parent.nbytes + self.corners.nbytes)
+
+
+def refit_topology(bvh: Bvh2, faces: IntArray) -> RefitTopology:
+    """Return the parent links and the leaf-order corner indices of ``bvh`` over ``faces``.
+
+    A refit keeps both (the tree's topology and the mesh's faces do not move), so an
+    animation computes them once and passes them to every :func:`refit_bvh2`.
+    """
+    n = bvh.n_nodes
+    parent = np.full(n, -1, dtype=INDEX)
+    inner = np.flatnonzero(bvh.node_count == 0).astype(INDEX)
+    first = bvh.node_first[inner]
+    parent[first] = inner
+    parent[first + 1] = inner
+    corners = np.ascontiguousarray(np.asarray(faces, dtype=INDEX)[bvh.prim_index])
+    for array in (parent, corners):
+        array.flags.writeable = False
+    return RefitTopology(parent, corners)
+
+
 @functools.cache
 def _refit_kernel(parallel: bool) -> Any:
     """Return the refit kernel, parallel or serial (STYLE §4.3: one dispatcher per variant)."""
 
     @cpu_kernel(parallel=parallel)
-    def kernel(node_first, node_count, prim_index, vertices, faces, lo, hi, n_threads):
+    def kernel(node_first, node_count, parent, corners, vertices, lo, hi, n_threads):
         """Recompute every box of a BVH2 from the triangles its leaves list (Karras 2012 §4).
 
         Parameters
         ----------
         node_first, node_count : (n,) int32
             The canonical topology (:class:`~rayaccel.bvh.layouts.bvh2.Bvh2`).
-        prim_index : (n_refs,) int32
+        parent : (n,) int32
+            Each node's parent, -1 at the root (:class:`RefitTopology`).
+        corners : (n_refs, 3) int32
+            Each reference's vertex indices, in leaf order.
         vertices : (V, 3) float32
             The new vertex positions.
-        faces : (F, 3) int32
         lo, hi : (n, 3) float32
             Output boxes; every node is written.
         n_threads : int
             Workers to start (``numba.get_num_threads()`` of the caller).
         """
         n = node_count.shape[0]
-        parent = empty_huge(n, np.int32)
         arrived = zeros_huge(n, np.int32)
-        parent[0] = -1
-        # Parent links: every inner node names itself in its two children.
-        for node in prange(n):
-            u = np.uint64(node)
-            if node_count[u] == 0:
-                parent[np.uint64(node_first[u])] = node
-                parent[np.uint64(node_first[u] + 1)] = node
         n_blocks = (n + BLOCK_NODES - 1) // BLOCK_NODES
         counter = new_counter()
         for _worker in prange(worker_count(n_blocks, n_threads, parallel)):
@@ -106,9 +144,9 @@ def _refit_kernel(parallel: bool) -> Any:
                     box = (inf, inf, inf, -inf, -inf, -inf)
                     first = node_first[u]
                     for j in range(first, first + count):
-                        p = np.uint64(prim_index[np.uint64(j)])
+                        r = np.uint64(j)
                         for c in range(3):
-                            box = union_bounds(box, vertices, vertices, np.uint64(faces[p, c]), 0)
+                            box = union_bounds(box, vertices, vertices, np.uint64(corners[r, c]), 0)
                     store_box(lo, hi, u, box)
                     # Climb while this thread is the second to reach each parent.
                     up = parent[u]
@@ -193,7 +231,9 @@ def sah_of(bvh: Bvh2, inner_cost: float = 1.2, prim_cost: float = 1.0) -> float:
     return float((inner_cost * inner + prim_cost * leaf) / root)
 
 
-def refit_bvh2(bvh: Bvh2, vertices: FloatArray, faces: IntArray) -> Bvh2:
+def refit_bvh2(
+    bvh: Bvh2, vertices: FloatArray, faces: IntArray, topology: RefitTopology | None = None
+) -> Bvh2:
     """Return ``bvh`` with every box recomputed for new vertex positions.
 
     Parameters
@@ -205,6 +245,9 @@ def refit_bvh2(bvh: Bvh2, vertices: FloatArray, faces: IntArray) -> Bvh2:
         The new positions (finite, C-contiguous; validated by the caller).
     faces : (F, 3) int32 ndarray
         The mesh's faces, unchanged since the build.
+    topology : RefitTopology, optional
+        :func:`refit_topology` of ``bvh`` and ``faces``, kept from an earlier refit of the
+        same tree (computed here when None).
 
     Returns
     -------
@@ -216,15 +259,17 @@ def refit_bvh2(bvh: Bvh2, vertices: FloatArray, faces: IntArray) -> Bvh2:
     -----
     O(n_nodes + 3·n_refs), parallel over blocks of nodes (see the module docstring).
     """
+    if topology is None:
+        topology = refit_topology(bvh, faces)
     lo = np.empty_like(bvh.node_lo, dtype=REAL)
     hi = np.empty_like(bvh.node_hi, dtype=REAL)
     with parallel_section():
         _refit_kernel(bvh.n_nodes >= PARALLEL_MIN_NODES)(
             _read_only(bvh.node_first, INDEX),
             _read_only(bvh.node_count, INDEX),
-            _read_only(bvh.prim_index, INDEX),
+            _read_only(topology.parent, INDEX),
+            _read_only(topology.corners, INDEX),
             _read_only(vertices, REAL),
-            _read_only(faces, INDEX),
             lo,
             hi,
             numba.get_num_threads(),
