@@ -136,7 +136,7 @@ def _topology(memo: dict[str, Any] | None, bvh: Bvh2, mesh: TriangleMesh) -> Ref
     topology = memo.get("refit_topology")
     if topology is None:
         topology = memo["refit_topology"] = refit_topology(bvh, mesh.faces)
-    return topology  # type: ignore[no-any-return]
+    return topology
 
 
 def refit_structure(
