@@ -43,10 +43,11 @@ demo: $(STAMP) system-deps
 	$(BIN)/rayaccel render $(DEMO_SCENE) --accel $(DEMO_BUILDER) --view shade -o $(OUT)/demo-shade.png
 	@echo "demo outputs in $(OUT)/"
 
-# Kernels compile on every core first (`rayaccel cache warm`); the suite then loads them,
+# Kernels compile on every core first (`rayaccel cache warm`: the serial kernels and the
+# parallel ones plain queries reach, all the default tier runs); the suite then loads them,
 # one pytest-xdist worker per core, each test file on one worker (its fixtures built once).
 test: $(STAMP) system-deps
-	$(BIN)/rayaccel cache warm --quiet
+	$(BIN)/rayaccel cache warm --quiet --common-parallel
 	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 bench: $(STAMP) system-deps

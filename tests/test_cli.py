@@ -133,6 +133,12 @@ def test_cache_warm_runs_each_job_and_names_bad_structures(capsys):
     assert f"compiling {n_jobs} kernel groups" in out
     assert f"[{n_jobs}/{n_jobs}]" in out
     assert "grid.dda any+stats serial" in out
+    code, out, _ = run(capsys, "cache", "warm", "--structure", "grid", "--common-parallel",
+                       "--jobs", "1", "--quiet")
+    assert code == 0
+    common = precompile.jobs(["grid"], variant_filter=precompile.common_parallel)
+    assert len(common) < len(precompile.jobs(["grid"]))
+    assert f"compiling {len(common)} kernel groups" in out
     code, _, err = run(capsys, "cache", "warm", "--structure", "octree")
     assert code == 1
     assert "octree" in err

@@ -45,6 +45,21 @@ def test_jobs_filters():
         precompile.jobs(["octree"])
 
 
+def test_common_parallel_keeps_what_plain_queries_reach():
+    todo = precompile.jobs(variant_filter=precompile.common_parallel)
+    parallel = {(j.traversal, j.query, j.stats) for j in todo if j.parallel}
+    for query in ("closest", "any"):
+        for stats in (False, True):
+            for traversal in ("bvh2.stack", "bvh2.wide", "kdtree.stack", "grid.dda"):
+                assert (traversal, query, stats) in parallel
+            plain = query == "closest" and not stats
+            assert (("kdtree.ropes", query, stats) in parallel) == plain
+    assert len(parallel) < len({(j.traversal, j.query, j.stats) for j in precompile.jobs()
+                                if j.parallel})  # fmt: skip
+    serial = precompile.jobs(parallel=False)
+    assert [j for j in todo if not j.parallel] == serial
+
+
 LOAD_SCRIPT = textwrap.dedent(
     """
     import numba.core.event as events

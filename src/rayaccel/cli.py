@@ -526,7 +526,8 @@ def _warm_cache(args: argparse.Namespace) -> int:
     """Compile every build key and traversal kernel into the cache, ``--jobs`` at a time."""
     from rayaccel import precompile
 
-    todo = precompile.jobs(args.structure, parallel=not args.serial_only)
+    keep = precompile.common_parallel if args.common_parallel else None
+    todo = precompile.jobs(args.structure, parallel=not args.serial_only, variant_filter=keep)
     total = len(todo)
     _out(f"compiling {total} kernel groups on {args.jobs} processes")
 
@@ -763,6 +764,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes for warm (default: one per core)")  # fmt: skip
     p.add_argument("--serial-only", action="store_true",
                    help="warm: skip the parallel kernels (batches of 4096 rays and more)")
+    p.add_argument("--common-parallel", action="store_true",
+                   help="warm: of the parallel kernels, only those plain queries reach (every "
+                   "kernel of the default and fastest traversals, closest hits of the others)")
     p.add_argument("--quiet", action="store_true", help="warm: no line per job")
     p.set_defaults(func=cmd_cache)
 
