@@ -560,9 +560,10 @@ class Accel:
 
     def validate(self) -> None:
         """Check every invariant of the structure; raise ``StructureInvariantError`` if broken."""
-        self.structure.validate(self.mesh.triangles())
         if self.mesh.precision == "float64":
-            _check_float64(self.structure, self.mesh)
+            _validate_float64(self.structure, self.mesh)
+        else:
+            self.structure.validate(self.mesh.triangles())
 
     # -- deformation, files and copies ---------------------------------------------------------
 
@@ -696,11 +697,20 @@ def _conservative(structure: Any, mesh: TriangleMesh) -> Any:
     return structure
 
 
-def _check_float64(structure: Any, mesh: TriangleMesh) -> None:
-    """Raise ``StructureInvariantError`` unless ``structure`` holds the float64 triangles."""
+def _validate_float64(structure: Any, mesh: TriangleMesh) -> None:
+    """Check ``structure``'s invariants and that it holds ``mesh``'s float64 triangles.
+
+    A float64 kd-tree lists each triangle in every leaf its float64 version touches by a
+    test without the triangle's plane axis (:mod:`rayaccel.kdtree.precision`), so a
+    listed triangle may miss its leaf's cell: its lists are checked for holding every
+    triangle where it touches (``check_conservative``), not for listing only those.
+    """
     if isinstance(structure, KdTree):
+        structure.validate()
         check_conservative(structure, mesh)
-    elif isinstance(structure, (UniformGrid, TwoLevelGrid)):
+        return
+    structure.validate(mesh.triangles())
+    if isinstance(structure, (UniformGrid, TwoLevelGrid)):
         check_grid_float64(structure, mesh)
 
 
