@@ -50,7 +50,7 @@ from rayaccel._jit import cpu_kernel
 from rayaccel.errors import StructureInvariantError
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import UniformGrid
-from rayaccel.kernels.overlap import touches
+from rayaccel.kernels.overlap import triangle_box_overlap
 from rayaccel.scene.mesh import TriangleMesh
 
 #: Grid builders that refuse float64 meshes, and why.
@@ -64,9 +64,14 @@ FLOAT64_REFUSED = {
 
 @cpu_kernel(parallel=True)
 def _first_unlisted(tri, lo, size, res, cell_start, prim_index):
-    """Return, per triangle, a cell its float64 version touches but that does not list it.
+    """Return, per triangle, a cell its float64 version overlaps but that does not list it.
 
-    Cells are the plain boxes ``lo + k·size`` (float64, not widened); -1 where none.
+    Cells are the plain boxes ``lo + k·size`` (float64, not widened); -1 where none. The
+    overlap test is the full separating axis test, the triangle's plane included:
+    :func:`~rayaccel.kernels.overlap.touches` leaves that axis out and so names cells the
+    triangle's plane passes by, which the builder rightly does not list. Where float64
+    rounding of a sliver's normal makes the plane axis separate falsely, a cell goes
+    unchecked; it never raises falsely.
     """
     n = tri.shape[0]
     out = np.full(n, -1, dtype=np.int64)
@@ -89,7 +94,7 @@ def _first_unlisted(tri, lo, size, res, cell_start, prim_index):
                     c_hi[1] = lo[1] + (y + 1) * size[1]
                     c_lo[2] = lo[2] + z * size[2]
                     c_hi[2] = lo[2] + (z + 1) * size[2]
-                    if not touches(tri, p, c_lo, c_hi):
+                    if not triangle_box_overlap(tri, p, c_lo, c_hi):
                         continue
                     cell = x + res[0] * (y + res[1] * z)
                     first = cell_start[cell]
@@ -109,7 +114,7 @@ def check_conservative(grid: UniformGrid | TwoLevelGrid, mesh: TriangleMesh) -> 
     """Raise :class:`StructureInvariantError` unless ``grid`` holds ``mesh``'s float64 triangles.
 
     Checks that every float64 corner lies in the grid box and that every triangle is
-    listed in each (top) cell whose plain box its float64 version touches.
+    listed in each (top) cell whose plain box its float64 version overlaps.
     """
     top = grid.top if isinstance(grid, TwoLevelGrid) else grid
     tri = mesh.triangles64()
@@ -124,5 +129,5 @@ def check_conservative(grid: UniformGrid | TwoLevelGrid, mesh: TriangleMesh) -> 
     if (unlisted >= 0).any():
         p = int(np.argmax(unlisted >= 0))
         raise StructureInvariantError(
-            f"grid: float64 triangle {p} touches cell {int(unlisted[p])} but is not listed there"
+            f"grid: float64 triangle {p} overlaps cell {int(unlisted[p])} but is not listed there"
         )

@@ -159,8 +159,8 @@ def touches_py(tri, p, lo, hi):
     The separating axis test above on the box faces and the nine box-axis × edge axes,
     without the triangle's plane, whose float64 rounding is not bounded for slivers (its
     normal is a rounded cross product): a superset of the exact answer, never a subset
-    beyond float64 rounding. Float64 meshes in float32 kd-trees and grids list their
-    triangles by it (:mod:`rayaccel.kdtree.precision`, :mod:`rayaccel.grid.precision`).
+    beyond float64 rounding. Float64 meshes in float32 kd-trees list their triangles by
+    it (:mod:`rayaccel.kdtree.precision`).
     """
     return separating_axes(tri, p, lo, hi, False)
 
