@@ -7,9 +7,11 @@ not mix with the plain kernels' cache): an index out of range anywhere raises
 ``IndexError`` there instead of reading or writing past an array. By default every
 structure's default builder and one traversal per structure (``bvh2.stack``,
 ``kdtree.ropes``, ``grid.dda``), with statistics (the variant holding the most code); with
-``--full``
-every build key and every serial traversal kernel (closest and any hit, with and without
-statistics), on every structure class.
+``--full`` every build key and every serial traversal kernel (closest and any hit, with and
+without statistics), on every structure class, then :func:`kernel_tour.tour` (build steps,
+parallel kernels, all hits, geometry queries, refit, float64, bounce rays, path tracer,
+heatmap); the run fails if any kernel the package declares did not run
+(:func:`kernel_tour.kernels_not_run`).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ SCRIPT = textwrap.dedent(
     from rayaccel import precompile, registry
 
     full = sys.argv[1] == "full"
+    sys.path.insert(0, sys.argv[2])
     if full:
         jobs = precompile.jobs(parallel=False)
     else:
@@ -38,6 +41,12 @@ SCRIPT = textwrap.dedent(
     for job in jobs:
         precompile.run_job(job)
         print("ran", job.name, flush=True)
+    if full:
+        import kernel_tour
+
+        kernel_tour.tour()
+        missing = kernel_tour.kernels_not_run()
+        print("kernels not run:", len(missing), *missing)
     print("jobs", len(jobs))
     """
 )
@@ -46,9 +55,12 @@ SCRIPT = textwrap.dedent(
 def test_kernels_run_with_bounds_checks(tmp_path, request):
     full = request.config.getoption("--full")
     env = {**os.environ, "NUMBA_BOUNDSCHECK": "1", "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
-    command = [sys.executable, "-c", SCRIPT, "full" if full else "subset"]
+    tests = os.path.dirname(__file__)
+    command = [sys.executable, "-c", SCRIPT, "full" if full else "subset", tests]
     run = subprocess.run(command, env=env, capture_output=True, text=True,
                          timeout=5400 if full else 1200)  # fmt: skip
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-4000:]
     ran = [line for line in run.stdout.splitlines() if line.startswith("ran ")]
     assert len(ran) == int(run.stdout.split("jobs ")[-1]) > 0
+    if full:
+        assert "kernels not run: 0\n" in run.stdout, run.stdout[-2000:]
