@@ -168,6 +168,11 @@ def test_refit_topology_is_found_once_per_tree_and_dropped_on_rebuild(sphere, mo
     # Frames 1 and 2 share one; frame 3 refits with it, then rebuilds; frame 4 finds anew.
     assert len(found) == 2
     topology = refit_vertices.refit_topology(accel.structure, accel.mesh.faces)
+    info = accel.info()
+    assert info["refit_bytes"] == topology.nbytes() > 0
+    assert info["bytes"] == accel.structure.nbytes() + info["refit_bytes"] + sum(
+        entry["bytes"] for entry in info["layouts"].values())  # fmt: skip
+    assert "refit_bytes" not in rayaccel.build(sphere, "bvh2.binned_sah").info()
     assert np.array_equal(topology.corners, sphere.faces[accel.structure.prim_index])
     inner = np.flatnonzero(accel.structure.node_count == 0)
     assert topology.parent[0] == -1

@@ -491,7 +491,8 @@ class Accel:
         structure's own figures (:meth:`rayaccel.trace.structure.Structure.info`; for
         a BVH ``n_nodes``, ``n_leaves``, ``n_refs``, ``depth``, ``sah``,
         ``mean_leaf_size``), ``refs_per_prim`` when it counts references, ``bytes``
-        (canonical plus every derived layout built so far), ``layouts`` (each derived
+        (canonical plus every derived layout built so far, plus ``refit_bytes``, what a
+        BVH keeps between refits, once refitted), ``layouts`` (each derived
         layout built so far, e.g. the 8-wide BVH of the default query traversal: its
         ``bytes`` and ``build_ms``, which includes the layouts it derives from when they
         were built for it), ``options``; ``epo`` and ``lcv`` when requested.
@@ -549,8 +550,13 @@ class Accel:
             for name, v in self._cache.items()
             if hasattr(v, "nbytes")
         }
-        info["bytes"] = int(s.nbytes()) + sum(entry["bytes"] for entry in layouts.values())
+        refit_bytes = sum(int(v.nbytes()) for v in self._refit_memo.values())
+        info["bytes"] = (
+            int(s.nbytes()) + sum(entry["bytes"] for entry in layouts.values()) + refit_bytes
+        )
         info["layouts"] = layouts
+        if refit_bytes:
+            info["refit_bytes"] = refit_bytes
         if self.last_refit is not None:
             info["refit"] = dict(self.last_refit)
         info["options"] = {

@@ -78,9 +78,8 @@ class RefitTopology:
     parent: IntArray
     corners: IntArray
 
-    @property
     def nbytes(self) -> int:
-        """Bytes held."""
+        """Return the bytes held."""
         return int(self.parent.nbytes + self.corners.nbytes)
 
 
