@@ -52,7 +52,12 @@ def declared_kernels() -> set[str]:
 
 
 def kernels_run() -> set[str]:
-    """Return ``module:qualname`` of every rayaccel CPU kernel compiled in this process."""
+    """Return ``module:qualname`` of every rayaccel CPU kernel compiled in this process.
+
+    A kernel loaded from numba's cache does not compile the kernels it calls, so the
+    answer is complete only in a process that compiles everything it runs (the
+    bounds-check tier, with a cache folder of its own).
+    """
     from numba.core.registry import CPUDispatcher
 
     ran: set[str] = set()

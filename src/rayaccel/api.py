@@ -550,7 +550,7 @@ class Accel:
             for name, v in self._cache.items()
             if hasattr(v, "nbytes")
         }
-        refit_bytes = sum(int(v.nbytes()) for v in self._refit_memo.values())
+        refit_bytes = sum(int(v.nbytes()) for v in tuple(self._refit_memo.values()))
         info["bytes"] = (
             int(s.nbytes()) + sum(entry["bytes"] for entry in layouts.values()) + refit_bytes
         )
