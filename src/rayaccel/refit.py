@@ -209,11 +209,11 @@ def refit_structure(
     refitted = None
     if can_refit(structure):
         refit_start = time.perf_counter()
+        topology = _topology(memo, structure, new_mesh)
         if new_mesh.precision == "float64":
             # Refitted and widened to contain the float64 triangles (bvh/precision.py).
-            refitted = conservative_bvh2(structure, new_mesh)
+            refitted = conservative_bvh2(structure, new_mesh, topology)
         else:
-            topology = _topology(memo, structure, new_mesh)
             refitted = refit_bvh2(structure, new_mesh.vertices, new_mesh.faces, topology)
         report["refit_ms"] = (time.perf_counter() - refit_start) * 1e3
         sah_refit = sah_of(refitted)

@@ -37,13 +37,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from rayaccel.bvh.builders.refit_vertices import refit_bvh2
+from rayaccel.bvh.builders.refit_vertices import RefitTopology, refit_bvh2
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.dtypes import REAL
 from rayaccel.scene.mesh import TriangleMesh
 
 
-def conservative_bvh2(bvh: Bvh2, mesh: TriangleMesh) -> Bvh2:
+def conservative_bvh2(
+    bvh: Bvh2, mesh: TriangleMesh, topology: RefitTopology | None = None
+) -> Bvh2:
     """Return ``bvh`` with every box containing ``mesh``'s float64 triangles.
 
     Parameters
@@ -52,6 +54,8 @@ def conservative_bvh2(bvh: Bvh2, mesh: TriangleMesh) -> Bvh2:
         A valid tree built over ``mesh`` (over its float32 :attr:`vertices`); unchanged.
     mesh : TriangleMesh
         The mesh; for a float32 mesh ``bvh`` is returned as it is.
+    topology : RefitTopology, optional
+        ``bvh``'s refit topology when kept from an earlier refit (found here when None).
 
     Returns
     -------
@@ -62,7 +66,7 @@ def conservative_bvh2(bvh: Bvh2, mesh: TriangleMesh) -> Bvh2:
     """
     if mesh.precision != "float64":
         return bvh
-    exact = refit_bvh2(bvh, mesh.vertices, mesh.faces)
+    exact = refit_bvh2(bvh, mesh.vertices, mesh.faces, topology)
     lo = np.nextafter(exact.node_lo, np.float32(-np.inf)).astype(REAL)
     hi = np.nextafter(exact.node_hi, np.float32(np.inf)).astype(REAL)
     return Bvh2(
