@@ -108,13 +108,14 @@ class DdaOptions:
 
 
 @functools.cache
-def trace_body(skip: bool, two_level: bool) -> Any:
-    """Return the per-ray body (``cpu_inline``) of the DDA, jumping over empty boxes if ``skip``.
+def trace_body(two_level: bool) -> Any:
+    """Return the per-ray body (``cpu_inline``) of the DDA, jumping over the layout's empty boxes.
 
-    With ``skip`` the kind of skip data is read from the layout at run time (one compiled
-    variant serves the distance field, the macro regions and the mip-map). With
-    ``two_level`` the body walks a :class:`TwoLevelTrace`: DDA in DDA, a non-empty top
-    cell walked through its sub-grid (see the module docstring).
+    The kind of skip data is read from the layout at run time, so one compiled body
+    serves ``grid.dda`` (a layout whose ``skip_kind`` is ``SKIP_NONE``: a cell-by-cell
+    walk) and ``grid.skip`` on the distance field, the macro regions and the mip-map.
+    With ``two_level`` the body walks a :class:`TwoLevelTrace`: DDA in DDA, a non-empty
+    top cell walked through its sub-grid (see the module docstring).
     """
 
     def trace_rays_py(
@@ -122,7 +123,6 @@ def trace_body(skip: bool, two_level: bool) -> Any:
         hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
     ):  # fmt: skip
         """Trace rays ``begin:end`` through ``grid`` (GridTrace or TwoLevelTrace); return 0."""
-        _ = skip
         mailbox = scratch
         skip_kind = grid.skip_kind[0]
         n_mail = grid.mailbox[0]
@@ -170,7 +170,7 @@ def trace_body(skip: bool, two_level: bool) -> Any:
                             n_vertical += 1
                         else:
                             n_cells += 1
-                    if skip and first == last and skip_kind != SKIP_NONE:
+                    if first == last and skip_kind != SKIP_NONE:
                         # Empty cell: leave the empty box around it in one jump.
                         if skip_kind == SKIP_DISTANCE:
                             k = np.int32(grid.skip[cell, 0]) - 1
@@ -284,27 +284,39 @@ def trace_body(skip: bool, two_level: bool) -> Any:
 
 
 @functools.cache
-def kernels_for(skip: bool, two_level: bool) -> Any:
+def kernels_for(two_level: bool) -> Any:
     """``kernel_for(query, with_stats, parallel)`` of the DDA (see :func:`trace_body`)."""
-    return body_kernels(make_mailbox, trace_body(skip, two_level))
+    return body_kernels(make_mailbox, trace_body(two_level))
 
 
 def grid_layout(
-    grid: UniformGrid, mesh: TriangleMesh, cache: dict[str, Any] | None, mailbox: int
+    grid: UniformGrid, mesh: TriangleMesh, cache: dict[str, Any] | None, mailbox: int, skip: bool
 ) -> GridTrace:
-    """Return the traversal layout of ``grid`` (memoised in ``cache``) with its mailbox size."""
+    """Return the traversal layout of ``grid`` (memoised in ``cache``) for one walk.
+
+    Its mailbox size is set, and without ``skip`` its skip data is hidden.
+    """
     layout = memoised_layout(cache, "grid.trace", lambda: trace_layout(grid, mesh.hit_rows(), 0))
-    return with_mailbox(layout, mailbox)
+    return walk_layout(layout, mailbox, skip)
 
 
 def two_level_layout(
-    grid: TwoLevelGrid, mesh: TriangleMesh, cache: dict[str, Any] | None, mailbox: int
-) -> TwoLevelTrace:
-    """Return the two-level traversal layout (memoised in ``cache``) with its mailbox size."""
+    grid: TwoLevelGrid, mesh: TriangleMesh, cache: dict[str, Any] | None, mailbox: int,
+    skip: bool,
+) -> TwoLevelTrace:  # fmt: skip
+    """Return the two-level traversal layout (memoised in ``cache``) for one walk."""
     layout = memoised_layout(
         cache, "grid.two_level_trace", lambda: two_level_trace_layout(grid, mesh.hit_rows())
     )
-    return with_mailbox(layout, mailbox)
+    return walk_layout(layout, mailbox, skip)
+
+
+def walk_layout(layout: Any, mailbox: int, skip: bool) -> Any:
+    """Return ``layout`` with its mailbox size set, its skip kind ``SKIP_NONE`` unless ``skip``."""
+    layout = with_mailbox(layout, mailbox)
+    if not skip:
+        layout = layout._replace(skip_kind=np.array([SKIP_NONE], dtype=layout.skip_kind.dtype))
+    return layout
 
 
 def _trace(
@@ -323,10 +335,10 @@ def _trace(
 
         return trace_irregular(grid, mesh, rays, query, stats, opts.mailbox, cache)
     if isinstance(grid, TwoLevelGrid):
-        levels = two_level_layout(grid, mesh, cache, opts.mailbox)
-        return run_trace(kernels_for(skip, True), levels, rays, query, stats)
-    layout = grid_layout(grid, mesh, cache, opts.mailbox)
-    return run_trace(kernels_for(skip, False), layout, rays, query, stats)
+        levels = two_level_layout(grid, mesh, cache, opts.mailbox, skip)
+        return run_trace(kernels_for(True), levels, rays, query, stats)
+    layout = grid_layout(grid, mesh, cache, opts.mailbox, skip)
+    return run_trace(kernels_for(False), layout, rays, query, stats)
 
 
 @register(
