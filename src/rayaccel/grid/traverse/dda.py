@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -311,12 +311,15 @@ def two_level_layout(
     return walk_layout(layout, mailbox, skip)
 
 
-def walk_layout(layout: Any, mailbox: int, skip: bool) -> Any:
+_Walked = TypeVar("_Walked", GridTrace, TwoLevelTrace)
+
+
+def walk_layout(layout: _Walked, mailbox: int, skip: bool) -> _Walked:
     """Return ``layout`` with its mailbox size set, its skip kind ``SKIP_NONE`` unless ``skip``."""
-    layout = with_mailbox(layout, mailbox)
+    walked = with_mailbox(layout, mailbox)
     if not skip:
-        layout = layout._replace(skip_kind=np.array([SKIP_NONE], dtype=layout.skip_kind.dtype))
-    return layout
+        walked = walked._replace(skip_kind=np.array([SKIP_NONE], dtype=walked.skip_kind.dtype))
+    return walked
 
 
 def _trace(
