@@ -57,7 +57,9 @@ def backtrack_layout(kd: KdTree) -> BacktrackLinks:
 
 def _arrays(kd: KdTree, mesh: TriangleMesh, cache: dict[str, Any] | None) -> StacklessArrays:
     links = memoised_layout(cache, "kdtree.backtrack", lambda: backtrack_layout(kd))
-    return stackless_arrays(kd_trace_layout(kd, mesh, cache), links.node_box, links.parent)
+    return stackless_arrays(
+        kd_trace_layout(kd, mesh, cache), links.node_box, links.parent, method=METHOD_BACKTRACK
+    )
 
 
 @register(

@@ -138,5 +138,7 @@ def trace_kdtree_ropes(
     opt = options or KdRopesOptions()
     name = "kdtree.ropes" if opt.optimize else "kdtree.ropes_plain"
     ropes = memoised_layout(cache, name, lambda: rope_layout(kd, opt.optimize))
-    arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache), ropes.leaf_box, ropes.leaf_rope)
+    arrays = stackless_arrays(
+        kd_trace_layout(kd, mesh, cache), ropes.leaf_box, ropes.leaf_rope, method=METHOD_ROPES
+    )
     return run_trace(trace_kernel(METHOD_ROPES), arrays, rays, query, stats)

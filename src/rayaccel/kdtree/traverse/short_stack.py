@@ -59,5 +59,7 @@ def trace_kdtree_short_stack(
 ) -> HitBatch:
     """Trace rays through a kd-tree with a short stack."""
     opt = options or KdShortStackOptions()
-    arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache), ring_size=int(opt.size))
+    arrays = stackless_arrays(
+        kd_trace_layout(kd, mesh, cache), ring_size=int(opt.size), method=METHOD_SHORT_STACK
+    )
     return run_trace(trace_kernel(METHOD_SHORT_STACK), arrays, rays, query, stats)

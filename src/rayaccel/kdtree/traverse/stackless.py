@@ -93,6 +93,7 @@ class StacklessArrays(NamedTuple):
     node_box: FloatArray  # (n, 6) interleaved cells (backtrack) or (n_leaves, 6) (ropes)
     link: IntArray  # (n,) parents (backtrack) or (n_leaves, 6) ropes flattened (ropes)
     ring_size: IntArray  # (1,) the short stack's ring entries (1..STACK_SIZE)
+    method: IntArray  # (1,) the METHOD_* constant the walk follows
 
 
 def stackless_arrays(
@@ -100,11 +101,13 @@ def stackless_arrays(
     box: FloatArray | None = None,
     link: IntArray | None = None,
     ring_size: int = 1,
+    method: int = METHOD_RESTART,
 ) -> StacklessArrays:
-    """Return the kernel argument: ``layout``'s arrays plus boxes, links and the ring size.
+    """Return the kernel argument: ``layout``'s arrays plus boxes, links, ring size and method.
 
-    The ring size is an array entry rather than a compile-time constant, so one short
-    stack kernel serves every size.
+    The ring size and the method are array entries rather than compile-time constants,
+    so one kernel serves every ring size and every trail method (kd-restart,
+    kd-backtrack, short stack); the ropes have a kernel of their own.
     """
     t = layout.arrays()
     return StacklessArrays(
@@ -112,6 +115,7 @@ def stackless_arrays(
         np.zeros((1, 6), np.float32) if box is None else box,
         np.zeros(1, np.int32) if link is None else link,
         np.array([ring_size], np.int32),
+        np.array([method], np.int32),
     )  # fmt: skip
 
 
@@ -213,7 +217,7 @@ def trail_walk_py(
     """Visit the leaves ``kdtree.stack`` visits for the segment ``[t_entry, t_exit]``.
 
     The walk of ``METHOD_RESTART``, ``METHOD_BACKTRACK`` and ``METHOD_SHORT_STACK``
-    (``method``, a compile-time constant; see the module docstring): descend by the
+    (``method``, read from the layout at run time; see the module docstring): descend by the
     restart trail, test the leaf, take the deepest pending level and find its subtree
     again. ``ring`` is the short stack's ring (node, segment start, segment end) of
     ``size`` entries, unused by the other methods. Also the rope walk's answer to an
@@ -471,14 +475,15 @@ rope_walk = cpu_inline(rope_walk_py)
 
 
 @functools.cache
-def _body(method: int) -> Any:
-    """Return the per-chunk body of one method."""
+def _body(ropes: bool) -> Any:
+    """Return the per-chunk body of the rope walk, or of the trail walk of the layout's method."""
 
     def trace_rays_py(
         kd, scratch, origin, direction, tmin, tmax, begin, end,
         hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
     ):  # fmt: skip
-        _ = method
+        _ = ropes
+        method = kd.method[0]
         size = np.int64(kd.ring_size[0])
         n_leaf_total = kd.leaf_first.shape[0]
         n_overflowed = 0
@@ -496,7 +501,7 @@ def _body(method: int) -> Any:
                 )
                 box_ray = (ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz)
                 tri_ray = (okx, oky, okz, kx, ky, kz, Sx, Sy, Sz)
-                if method == METHOD_ROPES:
+                if ropes:
                     (
                         t_hit, best_prim, best_u, best_v, overflowed, n_nodes, n_leaves,
                         n_empty, n_prim, n_rope, n_bytes,
@@ -529,5 +534,8 @@ def _body(method: int) -> Any:
 
 @functools.cache
 def trace_kernel(method: int) -> Any:
-    """Return ``kernel_for(query, with_stats, parallel)`` of one method."""
-    return body_kernels(make_scratch, _body(method))
+    """Return ``kernel_for(query, with_stats, parallel)`` of one method.
+
+    Every method but the ropes shares one compiled kernel (:func:`stackless_arrays`).
+    """
+    return body_kernels(make_scratch, _body(method == METHOD_ROPES))
