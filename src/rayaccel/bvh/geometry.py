@@ -57,6 +57,7 @@ from rayaccel.errors import InvalidInputError
 from rayaccel.rays.batch import RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.run import memoised_layout
+from rayaccel.vector_rows import check_finite_rows, check_real, rows_of_three
 
 #: Inside tests of :func:`signed_distance` and :func:`occupancy`.
 SIGN_METHODS = ("winding", "parity")
@@ -165,22 +166,10 @@ def coerce_points(points: Any, name: str = "points") -> np.ndarray:
     InvalidInputError
         Not an ``(n, 3)`` array of real numbers, or a coordinate is NaN or infinite.
     """
-    try:
-        array = np.asarray(points)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{name}: expected an (n, 3) float array ({exc})") from exc
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise InvalidInputError(f"{name}: expected shape (n, 3), got {array.shape}")
-    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
-        raise InvalidInputError(f"{name}: expected a float array, got dtype {array.dtype}")
+    array = rows_of_three(name, points, "n", "float")
+    check_real(name, array)
     out = np.ascontiguousarray(array, dtype=np.float64)
-    finite = np.isfinite(out).all(axis=1)
-    if not finite.all():
-        bad = int(np.argmin(finite))
-        raise InvalidInputError(
-            f"{name}: point {bad} is not finite ({out[bad].tolist()}); "
-            f"{int((~finite).sum())} non-finite points in all"
-        )
+    check_finite_rows(name, out, "point", "points")
     return out
 
 

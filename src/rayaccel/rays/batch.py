@@ -45,6 +45,7 @@ from rayaccel.dtypes import (
 )
 from rayaccel.errors import InvalidInputError
 from rayaccel.validation import check_coordinates, check_directions, reject_masked
+from rayaccel.vector_rows import check_real
 
 
 def _as_vectors(
@@ -63,8 +64,7 @@ def _as_vectors(
         array = np.broadcast_to(array, (n, 3))
     if array.ndim != 2 or array.shape[1] != 3:
         raise InvalidInputError(f"{name}: expected shape (n, 3), got {array.shape}")
-    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
-        raise InvalidInputError(f"{name}: expected a float array, got dtype {array.dtype}")
+    check_real(name, array)
     if n is not None and array.shape[0] != n:
         raise InvalidInputError(f"{name}: expected {n} rows to match origins, got {array.shape[0]}")
     with np.errstate(over="ignore"):

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -28,18 +27,7 @@ import numpy.typing as npt
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray, check_precision
 from rayaccel.errors import InvalidInputError
 from rayaccel.validation import NORMAL_FLOOR, check_coordinates, reject_masked
-
-
-def _rows_of_three(name: str, value: object, rows: str, kind: str) -> npt.NDArray[Any]:
-    """Return ``value`` as an array of shape ``(rows, 3)`` (``rows``, ``kind``: for errors)."""
-    reject_masked(name, value)
-    try:
-        array = np.asarray(value)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{name}: expected a ({rows}, 3) {kind} array, got {exc}") from exc
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise InvalidInputError(f"{name}: expected shape ({rows}, 3), got {array.shape}")
-    return array
+from rayaccel.vector_rows import check_finite_rows, check_real, rows_of_three
 
 
 def _coerce_vertices(
@@ -51,16 +39,10 @@ def _coerce_vertices(
     (:data:`rayaccel.validation.COORDINATE_LIMIT`); a float64 mesh's range lies within
     float32's, so its float32 rounding (what builders bound) is finite too.
     """
-    array = _rows_of_three("vertices", vertices, "V", "float")
-    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
-        raise InvalidInputError(f"vertices: expected a float array, got dtype {array.dtype}")
-    finite = np.isfinite(array)
-    if not finite.all():
-        bad = int(np.argwhere(~finite.all(axis=1))[0, 0])
-        raise InvalidInputError(
-            f"vertices: vertex {bad} is not finite ({array[bad].tolist()}); "
-            f"{int((~finite.all(axis=1)).sum())} non-finite vertices in all"
-        )
+    reject_masked("vertices", vertices)
+    array = rows_of_three("vertices", vertices, "V", "float")
+    check_real("vertices", array)
+    check_finite_rows("vertices", array, "vertex", "vertices")
     with np.errstate(over="ignore"):  # beyond float32's range: refused below
         coerced = np.ascontiguousarray(array, dtype=REAL)
     exact = None
@@ -73,7 +55,8 @@ def _coerce_vertices(
 
 
 def _coerce_faces(faces: object, n_vertices: int) -> IntArray:
-    array = _rows_of_three("faces", faces, "F", "int")
+    reject_masked("faces", faces)
+    array = rows_of_three("faces", faces, "F", "int")
     if array.shape[0] == 0:
         raise InvalidInputError("faces: the mesh is empty (0 triangles)")
     if np.issubdtype(array.dtype, np.floating):
