@@ -12,9 +12,11 @@ from pathlib import Path
 
 import pytest
 
+from rayaccel.scene import catalog
 from rayaccel.study import cells as cells_mod
 from rayaccel.study.cells import enumerate_cells
 from rayaccel.study.config import ConfigError, parse_config
+from rayaccel.study.raysets import scene_raysets
 from rayaccel.study.results import ResultsFile, ResultsFormatError, read_results
 from rayaccel.study.sweep import MAX_ATTEMPTS, sweep
 
@@ -230,6 +232,26 @@ def test_a_failing_cell_is_tried_three_times_then_recorded(finished, tmp_path, m
     monkeypatch.undo()
     again = sweep(config, out, rays_folder=results.with_suffix(".rays"))
     assert again.ran == 0  # given up for good
+
+
+def test_a_counter_cell_uses_the_structure_it_is_handed(finished, monkeypatch):
+    """On Dask a counter cell receives its structure from a build task: no second build."""
+    results, _ = finished
+    config = parse_config(_with('passes = ["counters"]'))
+    cell = enumerate_cells(config)[0]
+    mesh = catalog.get(cell.scene)
+    rayset = scene_raysets(mesh, cell.scene, config.rays, results.with_suffix(".rays"))[cell.rayset]
+    handed = cells_mod.counter_structure(config, mesh, cell.builder)
+    monkeypatch.setattr(cells_mod, "_ACCELS", {})
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("built again")
+
+    monkeypatch.setattr(cells_mod, "_build_once", no_build)
+    record = cells_mod.run_cell(cell, config, mesh, rayset, handed)
+    assert record["status"] == "ok", record.get("error")
+    assert record["mismatches"] == 0
+    assert cells_mod._ACCELS[(mesh.digest(), cell.builder)] is handed
 
 
 def test_dask_local_cluster_runs_every_cell_once_and_survives_a_dead_worker(finished, tmp_path):

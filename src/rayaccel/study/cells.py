@@ -17,7 +17,9 @@ sweep skips exactly the finished cells, and changing the rays makes new cells.
 
 Structures are built once per (scene, builder) in the process that runs the cell
 and kept there (:data:`_ACCELS`), as are the peers' structures, so the
-cells of one structure reuse it.
+cells of one structure reuse it. On Dask a counter cell may also receive its
+structure from a build task (:func:`counter_structure`) run on another worker, so
+moving a cell between workers copies the structure instead of building it again.
 """
 
 from __future__ import annotations
@@ -153,6 +155,16 @@ def structure(mesh: TriangleMesh, builder: str, threads: int, config: SweepConfi
     return _ACCELS[key]
 
 
+def counter_structure(config: SweepConfig, mesh: TriangleMesh, builder: str) -> api.Accel:
+    """Return the structure the counter cells of ``builder`` on ``mesh`` share (one thread).
+
+    The Dask runner submits it as a task of its own and hands the result to those
+    cells (:func:`run_cell`'s ``accel``).
+    """
+    with _Threads(1):
+        return structure(mesh, builder, 1, config)
+
+
 def _build_once(mesh: TriangleMesh, builder: str, config: SweepConfig) -> api.Accel:
     key, options = config.variant(builder)
     return api.build(mesh, key, **options)
@@ -266,13 +278,21 @@ def _timing(cell: Cell, config: SweepConfig, mesh: TriangleMesh, rayset: RaySet)
 
 
 def run_cell(
-    cell: Cell, config: SweepConfig, mesh: TriangleMesh, rayset: RaySet | None
+    cell: Cell,
+    config: SweepConfig,
+    mesh: TriangleMesh,
+    rayset: RaySet | None,
+    accel: api.Accel | None = None,
 ) -> Record:
     """Run one cell; return its record (``status`` "ok", or "failed" with the error).
 
-    The record carries ``seconds``, the cell's own wall-clock time, and when
-    (``started``, Unix time) and where (``host``, ``pid``) it ran.
+    ``accel``, the cell's structure built elsewhere (:func:`counter_structure`), is
+    kept for the cells that follow in this process. The record carries ``seconds``,
+    the cell's own wall-clock time, and when (``started``, Unix time) and where
+    (``host``, ``pid``) it ran.
     """
+    if accel is not None:
+        _ACCELS.setdefault((mesh.digest(), cell.builder), accel)
     start = time.perf_counter()
     record: Record = cell.fields()
     record.update(started=time.time(), host=socket.gethostname(), pid=os.getpid())

@@ -15,9 +15,11 @@ With ``workers`` or ``scheduler`` the cells run on a ``dask.distributed`` cluste
 (``broadcast``); each worker builds the structures it needs and keeps them for
 its next cells. Build and timing cells run one at a time per machine: the client
 keeps at most one of them in flight per host, restricted to that host, so two
-timings never share a machine; counter cells fill the workers, those of one
-structure preferably on one worker (structures spread over the workers by their
-cell counts), so each worker builds few structures. A
+timings never share a machine; counter cells fill the workers. Each structure of
+a scene's counter cells is built once, by a task of its own (one thread) on its
+home worker (structures spread over the workers by their cell counts); its cells
+prefer that worker, and a cell that Dask moves to another worker takes a copy of
+the structure with it rather than building it again. A
 worker that dies has its cell re-run by Dask (up to its ``allowed-failures``), and
 then by the sweep, up to :data:`MAX_ATTEMPTS` times in all. The single writer is
 this process.
@@ -40,6 +42,7 @@ from rayaccel.study.cells import (
     Record,
     balance,
     cells_by_scene,
+    counter_structure,
     enumerate_cells,
     run_cell,
 )
@@ -73,6 +76,9 @@ class SweepSummary:
         Sum of the cells' own times (what the work itself took).
     rays_seconds : float
         Time spent making the scenes' ray sets (path tracing included).
+
+    On Dask, the structures of counter cells are built by tasks of their own, whose
+    time is in ``wall_seconds`` but not in ``cell_seconds``.
     """
 
     cells: int
@@ -251,7 +257,7 @@ class _DaskRunner(_Runner):
 
     def _submit(self, cell: Cell, host: str | None, args: tuple[Any, ...]) -> None:
         self.attempts[cell.key] = self.attempts.get(cell.key, 0) + 1
-        config, mesh_f, rayset, home = args
+        config, mesh_f, rayset, home, accel_f = args
         # A host, not a worker address, for timed cells: a worker that dies is
         # replaced under another address, and the cell must be able to run there.
         # Counter cells prefer their structure's worker but may run on any.
@@ -259,8 +265,9 @@ class _DaskRunner(_Runner):
             future = self.client.submit(run_cell, cell, config, mesh_f, rayset, workers=[host],
                                         pure=False)  # fmt: skip
         else:
-            future = self.client.submit(run_cell, cell, config, mesh_f, rayset, workers=[home],
-                                        allow_other_workers=True, pure=False)  # fmt: skip
+            future = self.client.submit(run_cell, cell, config, mesh_f, rayset, accel_f,
+                                        workers=[home], allow_other_workers=True,
+                                        pure=False)  # fmt: skip
         self.futures[future] = (cell, host, args)
         self.done.add(future)
 
@@ -306,8 +313,10 @@ class _DaskRunner(_Runner):
         by_host = self._hosts()
         for host in by_host:
             self.busy.setdefault(host, False)
-        # Counter cells of one structure go preferably to one worker, so each worker
-        # builds few structures; the structures are spread by their cell counts.
+        # Each structure of the counter cells is built once, by a task on its home worker
+        # (structures spread over the workers by their cell counts), ahead of the cells
+        # already waiting there (priority); its cells go preferably to that worker, and
+        # take the structure from the build wherever they run.
         addresses = [a for host in by_host for a in by_host[host]]
         groups: dict[str, int] = {}
         for cell in cells:
@@ -316,9 +325,16 @@ class _DaskRunner(_Runner):
         home = {b: addresses[i] for b, i in balance(groups, len(addresses)).items()}
         mesh_f = client.scatter(mesh, broadcast=True)
         sets_f = {name: client.scatter(rs, broadcast=True) for name, rs in raysets.items()}
+        accels_f = {}
+        for builder, address in home.items():
+            accels_f[builder] = client.submit(
+                counter_structure, config, mesh_f, builder, workers=[address],
+                allow_other_workers=True, pure=False, priority=1,
+            )  # fmt: skip
         for cell in cells:
             rayset = sets_f.get(cell.rayset) if cell.rayset else None
-            args = (config, mesh_f, rayset, home.get(cell.builder))
+            accel_f = None if cell.exclusive else accels_f.get(cell.builder)
+            args = (config, mesh_f, rayset, home.get(cell.builder), accel_f)
             if cell.exclusive:
                 self.exclusive.append((cell, args))
             else:
