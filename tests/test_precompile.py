@@ -29,9 +29,19 @@ def test_jobs_cover_every_kernel_variant():
             for stats in (False, True):
                 assert ("grid.two_level", traversal, query, stats) in serial
     assert not any(j.build_key == "bvh2.sbvh" for j in todo if j.traversal)
-    # Serial jobs (which compile the chunk workers) come before the parallel ones.
+    # The default trees' builds come first, then the serial jobs (which compile the
+    # chunk workers), then the parallel ones.
+    defaults = {registry.default_builder(structure) for structure in registry.structures()}
+    first = todo[: len(defaults)]
+    assert {j.build_key for j in first} == defaults
+    assert not any(j.traversal for j in first)
     first_parallel = next(i for i, j in enumerate(todo) if j.parallel)
-    assert all(j.traversal and not j.parallel for j in todo[:first_parallel])
+    assert all(j.traversal and not j.parallel for j in todo[len(defaults) : first_parallel])
+    # Traversals of one structure that share a kernel are not next to each other.
+    plain = [j.traversal for j in todo[:first_parallel]
+             if j.traversal and j.query == "closest" and not j.stats and j.build_key in defaults]
+    assert abs(plain.index("grid.dda") - plain.index("grid.skip")) > 1
+    assert abs(plain.index("kdtree.restart") - plain.index("kdtree.backtrack")) > 1
 
 
 def test_jobs_filters():

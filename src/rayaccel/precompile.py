@@ -86,10 +86,11 @@ def jobs(
     Returns
     -------
     list of Job
-        Serial kernels on each structure's default tree first (each compiles its
-        traversal's chunk worker, the slow part), then on the trees of builders that
-        return another structure class (:func:`_other_layouts`), then the parallel
-        ones (a ``prange`` around that worker), then builds.
+        The builds of the structures' default trees, then serial kernels on those
+        trees (each compiles its traversal's chunk worker, the slow part), then on the
+        trees of builders that return another structure class
+        (:func:`_other_layouts`), then the parallel ones (a ``prange`` around that
+        worker), then the other builds.
     """
     names = list(structures) if structures is not None else registry.structures()
     unknown = sorted(set(names) - set(registry.structures()))
@@ -104,21 +105,37 @@ def jobs(
     builds = [Job(key) for key in registry.build_keys()
               if registry.get_chain(key)[0].structure in names]  # fmt: skip
     # Query-major order: the closest and any-hit kernels of one statistics variant call
-    # one chunk worker, so two processes never start on the same worker at once.
+    # one chunk worker, so two processes never start on the same worker at once. Within
+    # a query the structures take turns, so traversals of one structure that share a
+    # compiled kernel (grid.dda and grid.skip; kd-restart, kd-backtrack and the short
+    # stack) stand apart in the list: the later one loads what the earlier one compiled
+    # instead of compiling it at the same time in another process.
+    walks = {structure: registry.keys("traversal", structure) for structure in names}
+    turns = [
+        (structure, walks[structure][i])
+        for i in range(max((len(w) for w in walks.values()), default=0))
+        for structure in names
+        if i < len(walks[structure])
+    ]
     for query in QUERY_KINDS:
-        for structure in names:
+        for structure, traversal in turns:
             tree = registry.default_builder(structure)
             others = _other_layouts(structure)
-            for traversal in registry.keys("traversal", structure):
-                for stats in (False, True):
-                    serial.append(Job(tree, traversal, query, stats, parallel=False))
-                    # A builder of another structure class (the two-level grid) has
-                    # its own layout, so its kernels compile anew.
-                    other_trees += [Job(key, traversal, query, stats) for key in others]
-                    keep = variant_filter is None or variant_filter(traversal, query, stats)
-                    if parallel and keep:
-                        parallel_jobs.append(Job(tree, traversal, query, stats, parallel=True))
-    return serial + other_trees + parallel_jobs + builds
+            for stats in (False, True):
+                serial.append(Job(tree, traversal, query, stats, parallel=False))
+                # A builder of another structure class (the two-level grid) has
+                # its own layout, so its kernels compile anew.
+                other_trees += [Job(key, traversal, query, stats) for key in others]
+                keep = variant_filter is None or variant_filter(traversal, query, stats)
+                if parallel and keep:
+                    parallel_jobs.append(Job(tree, traversal, query, stats, parallel=True))
+    # The default trees' builds first, each on one process: every traversal job builds
+    # its structure's default tree, and the build kernels would otherwise compile in
+    # both processes at once when their first traversal jobs start together.
+    defaults = {registry.default_builder(structure) for structure in names}
+    first = [job for job in builds if job.build_key in defaults]
+    rest = [job for job in builds if job.build_key not in defaults]
+    return first + serial + other_trees + parallel_jobs + rest
 
 
 def common_parallel(traversal: str, query: str, stats: bool) -> bool:
