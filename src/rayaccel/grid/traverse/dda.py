@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
@@ -289,33 +289,12 @@ def kernels_for(two_level: bool) -> Any:
     return body_kernels(make_mailbox, trace_body(two_level))
 
 
-def grid_layout(
-    grid: UniformGrid, mesh: TriangleMesh, cache: dict[str, Any] | None, mailbox: int, skip: bool
-) -> GridTrace:
-    """Return the traversal layout of ``grid`` (memoised in ``cache``) for one walk.
+def walk_layout(layout: GridTrace | TwoLevelTrace, mailbox: int, skip: bool) -> Any:
+    """Return ``layout`` with its mailbox size set, its skip kind ``SKIP_NONE`` unless ``skip``.
 
-    Its mailbox size is set, and without ``skip`` its skip data is hidden.
+    The layouts themselves are memoised per ``Accel``; this copy only replaces the two
+    ``(1,)`` entries, so ``grid.dda`` and ``grid.skip`` share one compiled body.
     """
-    layout = memoised_layout(cache, "grid.trace", lambda: trace_layout(grid, mesh.hit_rows(), 0))
-    return walk_layout(layout, mailbox, skip)
-
-
-def two_level_layout(
-    grid: TwoLevelGrid, mesh: TriangleMesh, cache: dict[str, Any] | None, mailbox: int,
-    skip: bool,
-) -> TwoLevelTrace:  # fmt: skip
-    """Return the two-level traversal layout (memoised in ``cache``) for one walk."""
-    layout = memoised_layout(
-        cache, "grid.two_level_trace", lambda: two_level_trace_layout(grid, mesh.hit_rows())
-    )
-    return walk_layout(layout, mailbox, skip)
-
-
-_Walked = TypeVar("_Walked", GridTrace, TwoLevelTrace)
-
-
-def walk_layout(layout: _Walked, mailbox: int, skip: bool) -> _Walked:
-    """Return ``layout`` with its mailbox size set, its skip kind ``SKIP_NONE`` unless ``skip``."""
     walked = with_mailbox(layout, mailbox)
     if not skip:
         walked = walked._replace(skip_kind=np.array([SKIP_NONE], dtype=walked.skip_kind.dtype))
@@ -337,11 +316,16 @@ def _trace(
         from rayaccel.grid.traverse.irregular import trace_irregular
 
         return trace_irregular(grid, mesh, rays, query, stats, opts.mailbox, cache)
+    two_level = isinstance(grid, TwoLevelGrid)
+    rows = mesh.hit_rows
     if isinstance(grid, TwoLevelGrid):
-        levels = two_level_layout(grid, mesh, cache, opts.mailbox, skip)
-        return run_trace(kernels_for(True), levels, rays, query, stats)
-    layout = grid_layout(grid, mesh, cache, opts.mailbox, skip)
-    return run_trace(kernels_for(False), layout, rays, query, stats)
+        layout: GridTrace | TwoLevelTrace = memoised_layout(
+            cache, "grid.two_level_trace", lambda: two_level_trace_layout(grid, rows())
+        )
+    else:
+        layout = memoised_layout(cache, "grid.trace", lambda: trace_layout(grid, rows(), 0))
+    walked = walk_layout(layout, opts.mailbox, skip)
+    return run_trace(kernels_for(two_level), walked, rays, query, stats)
 
 
 @register(
