@@ -36,7 +36,6 @@ LAYERS: dict[str, int] = {
     "_atomic": 0,  # not in STYLE §2 yet: stdlib-only atomic file writes
     "_work": 0,  # not in STYLE §2: work distribution of parallel kernels (shared counter)
     "validation": 0,  # not in STYLE §2: argument checks shared by every entry point
-    "vector_rows": 0,  # not in STYLE §2: (n, 3) array checks of vertices, points and rays
     "kernels": 1,
     "scene": 2,
     "rays": 2,

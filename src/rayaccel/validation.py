@@ -1,6 +1,8 @@
 """Checks every entry point applies to array arguments as it coerces them (layer 0).
 
-Masked arrays are refused before coercion; the numeric range of each precision (the
+Masked arrays are refused before coercion; ``(n, 3)`` arrays (mesh vertices and faces,
+query points, rays) are checked for shape, a real dtype and finite rows in the same
+words at every entry point; the numeric range of each precision (the
 coordinates, directions and triangles the intersection tests trace without overflow) is
 checked on the coerced arrays against the input.
 """
@@ -10,6 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from rayaccel.errors import InvalidInputError
 
@@ -30,6 +33,59 @@ def reject_masked(name: str, value: object) -> None:
         raise InvalidInputError(
             f"{name}: a masked array with {masked} masked entries; "
             "fill them (.filled()) or drop them (.compressed()) first"
+        )
+
+
+# -- (n, 3) rows -----------------------------------------------------------------------------
+
+
+def rows_of_three(name: str, value: object, rows: str, kind: str) -> npt.NDArray[Any]:
+    """Return ``value`` as an array of shape ``(rows, 3)`` (``rows``, ``kind``: for errors).
+
+    Raises
+    ------
+    InvalidInputError
+        ``value`` is not an array, or not two-dimensional with three columns.
+    """
+    try:
+        array = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name}: expected a ({rows}, 3) {kind} array, got {exc}") from exc
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidInputError(f"{name}: expected shape ({rows}, 3), got {array.shape}")
+    return array
+
+
+def check_real(name: str, array: npt.NDArray[Any]) -> None:
+    """Raise unless ``array`` holds real numbers (a float or integer dtype).
+
+    Raises
+    ------
+    InvalidInputError
+        Naming ``array``'s dtype (strings, objects, complex numbers, booleans).
+    """
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise InvalidInputError(f"{name}: expected a float array, got dtype {array.dtype}")
+
+
+def check_finite_rows(name: str, array: npt.NDArray[Any], row: str, rows: str) -> None:
+    """Raise unless every row of the ``(n, 3)`` real ``array`` is finite.
+
+    ``row`` and ``rows`` name one row and several in the message (``"vertex"``,
+    ``"vertices"``).
+
+    Raises
+    ------
+    InvalidInputError
+        Naming the first row holding a NaN or an infinity, its values and how many
+        rows do.
+    """
+    finite = np.isfinite(array).all(axis=1)
+    if not finite.all():
+        bad = int(np.argmin(finite))
+        raise InvalidInputError(
+            f"{name}: {row} {bad} is not finite ({array[bad].tolist()}); "
+            f"{int((~finite).sum())} non-finite {rows} in all"
         )
 
 

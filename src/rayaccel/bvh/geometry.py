@@ -57,7 +57,7 @@ from rayaccel.errors import InvalidInputError
 from rayaccel.rays.batch import RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.run import memoised_layout
-from rayaccel.vector_rows import check_finite_rows, check_real, rows_of_three
+from rayaccel.validation import check_finite_rows, check_real, rows_of_three
 
 #: Inside tests of :func:`signed_distance` and :func:`occupancy`.
 SIGN_METHODS = ("winding", "parity")

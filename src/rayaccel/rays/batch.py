@@ -44,8 +44,7 @@ from rayaccel.dtypes import (
     check_precision,
 )
 from rayaccel.errors import InvalidInputError
-from rayaccel.validation import check_coordinates, check_directions, reject_masked
-from rayaccel.vector_rows import check_real
+from rayaccel.validation import check_coordinates, check_directions, check_real, reject_masked
 
 
 def _as_vectors(

@@ -26,8 +26,14 @@ import numpy.typing as npt
 
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray, check_precision
 from rayaccel.errors import InvalidInputError
-from rayaccel.validation import NORMAL_FLOOR, check_coordinates, reject_masked
-from rayaccel.vector_rows import check_finite_rows, check_real, rows_of_three
+from rayaccel.validation import (
+    NORMAL_FLOOR,
+    check_coordinates,
+    check_finite_rows,
+    check_real,
+    reject_masked,
+    rows_of_three,
+)
 
 
 def _coerce_vertices(
