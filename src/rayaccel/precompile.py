@@ -117,10 +117,12 @@ def jobs(
         for structure in names
         if i < len(walks[structure])
     ]
+    trees = {structure: registry.default_builder(structure) for structure in names}
+    other_layouts = {structure: _other_layouts(structure) for structure in names}
     for query in QUERY_KINDS:
         for structure, traversal in turns:
-            tree = registry.default_builder(structure)
-            others = _other_layouts(structure)
+            tree = trees[structure]
+            others = other_layouts[structure]
             for stats in (False, True):
                 serial.append(Job(tree, traversal, query, stats, parallel=False))
                 # A builder of another structure class (the two-level grid) has
@@ -132,7 +134,7 @@ def jobs(
     # The default trees' builds first, each on one process: every traversal job builds
     # its structure's default tree, and the build kernels would otherwise compile in
     # both processes at once when their first traversal jobs start together.
-    defaults = {registry.default_builder(structure) for structure in names}
+    defaults = set(trees.values())
     first = [job for job in builds if job.build_key in defaults]
     rest = [job for job in builds if job.build_key not in defaults]
     return first + serial + other_trees + parallel_jobs + rest

@@ -161,8 +161,7 @@ def counter_structure(config: SweepConfig, mesh: TriangleMesh, builder: str) -> 
     The Dask runner submits it as a task of its own and hands the result to those
     cells (:func:`run_cell`'s ``accel``).
     """
-    with _Threads(1):
-        return structure(mesh, builder, 1, config)
+    return structure(mesh, builder, 1, config)
 
 
 def _build_once(mesh: TriangleMesh, builder: str, config: SweepConfig) -> api.Accel:

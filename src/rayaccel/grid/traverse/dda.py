@@ -316,16 +316,16 @@ def _trace(
         from rayaccel.grid.traverse.irregular import trace_irregular
 
         return trace_irregular(grid, mesh, rays, query, stats, opts.mailbox, cache)
-    two_level = isinstance(grid, TwoLevelGrid)
-    rows = mesh.hit_rows
     if isinstance(grid, TwoLevelGrid):
         layout: GridTrace | TwoLevelTrace = memoised_layout(
-            cache, "grid.two_level_trace", lambda: two_level_trace_layout(grid, rows())
+            cache, "grid.two_level_trace", lambda: two_level_trace_layout(grid, mesh.hit_rows())
         )
     else:
-        layout = memoised_layout(cache, "grid.trace", lambda: trace_layout(grid, rows(), 0))
+        layout = memoised_layout(
+            cache, "grid.trace", lambda: trace_layout(grid, mesh.hit_rows(), 0)
+        )
     walked = walk_layout(layout, opts.mailbox, skip)
-    return run_trace(kernels_for(two_level), walked, rays, query, stats)
+    return run_trace(kernels_for(isinstance(grid, TwoLevelGrid)), walked, rays, query, stats)
 
 
 @register(
