@@ -7,7 +7,7 @@ import pytest
 from PIL import Image
 
 from rayaccel import precompile, registry
-from rayaccel.cli import main, parse_options
+from rayaccel.cli import build_parser, main, parse_options
 from rayaccel.counters import COUNTER_NAMES
 from rayaccel.errors import InvalidInputError
 
@@ -101,6 +101,18 @@ def test_usage_errors_exit_2(capsys):
     assert run(capsys, "frobnicate")[0] == 2
     assert run(capsys, "render", "cornell-box")[0] == 2  # no -o
     assert run(capsys, "bench", "cornell-box", "--threads", "0")[0] == 2
+
+
+def test_every_command_prints_its_help(capsys):
+    """argparse %-formats help strings: a stray ``%`` made ``bench --help`` crash."""
+    parser = build_parser()
+    commands = next(a for a in parser._actions if a.dest == "command").choices
+    assert "bench" in commands
+    for command in [None, *commands]:
+        args = ["--help"] if command is None else [command, "--help"]
+        code, out, err = run(capsys, *args)
+        assert (code, err) == (0, ""), command
+        assert out.startswith("usage: rayaccel"), command
 
 
 def test_parse_options():

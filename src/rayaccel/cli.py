@@ -693,7 +693,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenes", nargs="+", metavar="SCENE",
                    help=scene_help + ", optionally with another view of its camera: "
                    "living_room@yaw40 (turned in place), teapot@orbit90 (around the target), "
-                   "kitchen@walk0.3+yaw180 (30% of the way to the target, looking back)")
+                   "kitchen@walk0.3+yaw180 (30%% of the way to the target, looking back)")
     p.add_argument("--accel", nargs="+", metavar="KEY",
                    help=f"{accel_help} or 'all' (default)")  # fmt: skip
     p.add_argument(
