@@ -33,6 +33,9 @@ PARALLEL_MIN_RAYS = 4096
 #: query, so every traversal derives its layout once for both targets).
 TRACE_TARGET: ContextVar[Any] = ContextVar("rayaccel_trace_target", default=None)
 
+#: The reason :func:`run_trace` gives for rays that overflow a traversal stack unless told.
+DEFAULT_OVERFLOW_HINT = "the structure is deeper than its traversal stack"
+
 _Layout = TypeVar("_Layout")
 
 
@@ -75,7 +78,7 @@ def run_trace(
     rays: RayBatch,
     query: str,
     stats: bool,
-    overflow_hint: str = "the structure is deeper than its traversal stack",
+    overflow_hint: str = DEFAULT_OVERFLOW_HINT,
 ) -> HitBatch:
     """Allocate outputs, run a ``kernel_for(query, stats, parallel)`` kernel, wrap the hits.
 

@@ -28,12 +28,10 @@ backtracking targets (``backtrack_sibling`` 0 levels up, ``_uncle`` 1,
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from rayaccel._jit import cpu_inline
-from rayaccel._variant import register
 from rayaccel.bvh.layouts.bvh2 import PACKED_ROW_BYTES, Bvh2
 from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, linked_layout
 from rayaccel.bvh.traverse.building_blocks import (
@@ -47,10 +45,10 @@ from rayaccel.bvh.traverse.building_blocks import (
 )
 from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.queries import QUERY_ANY
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_start
-from rayaccel.trace.run import body_kernels, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import body_kernels
 from rayaccel.trace.skeleton import no_scratch, store_backtracks, store_counts, store_hit
 
 
@@ -153,29 +151,20 @@ trace_rays = cpu_inline(trace_rays_py)
 trace_kernel = body_kernels(no_scratch, trace_rays)
 
 
-@register(
-    "traversal",
+@register_traversal(
     "bvh2.bitstack",
     options=BitstackOptions,
     summary="stackless ordered traversal with a per-level bitstack and parent links",
     reference="Áfra & Szirmay-Kalos 2014, Stackless Multi-BVH Traversal for CPU, MIC and GPU",
 )
 def trace_bvh2_bitstack(
-    bvh: Bvh2,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: BitstackOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    bvh: Bvh2, mesh: TriangleMesh, options: BitstackOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a binary BVH with a bitstack and parent links.
 
     Hits are bit-identical to ``bvh2.stack``'s.
     """
-    _ = options
     check_trail_depth(bvh, cache, "bvh2.bitstack")
     packed = packed_layout(bvh, mesh, cache)
     linked = linked_layout(packed, cache)
-    return run_trace(trace_kernel, linked.arrays(), rays, query, stats)
+    return TracePlan(trace_kernel, linked.arrays())

@@ -35,19 +35,17 @@ and triangle bytes).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 from rayaccel._jit import cpu_inline
-from rayaccel._variant import register
 from rayaccel.bvh.layouts.bvh2 import PACKED_ROW_BYTES, Bvh2
 from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, linked_layout
 from rayaccel.bvh.traverse.building_blocks import INF32, box_entry, leaf_hits
 from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.queries import QUERY_ANY
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_start
-from rayaccel.trace.run import body_kernels, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import body_kernels
 from rayaccel.trace.skeleton import no_scratch, store_backtracks, store_counts, store_hit
 
 #: States of the machine (Hapala et al.: from parent, from child, from sibling).
@@ -188,28 +186,19 @@ trace_rays = cpu_inline(trace_rays_py)
 trace_kernel = body_kernels(no_scratch, trace_rays)
 
 
-@register(
-    "traversal",
+@register_traversal(
     "bvh2.parent_link",
     options=ParentLinkOptions,
     summary="stackless three-state machine over parent and sibling links (distance order)",
     reference="Hapala et al. 2011, Efficient Stack-less BVH Traversal for Ray Tracing",
 )
 def trace_bvh2_parent_link(
-    bvh: Bvh2,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: ParentLinkOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    bvh: Bvh2, mesh: TriangleMesh, options: ParentLinkOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a binary BVH with parent links and no stack.
 
     Hits are bit-identical to ``bvh2.stack``'s.
     """
-    _ = options
     packed = packed_layout(bvh, mesh, cache)
     linked = linked_layout(packed, cache)
-    return run_trace(trace_kernel, linked.arrays(), rays, query, stats)
+    return TracePlan(trace_kernel, linked.arrays())

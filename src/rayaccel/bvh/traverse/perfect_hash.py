@@ -52,7 +52,7 @@ from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
 from rayaccel._jit import cpu_inline, cpu_kernel
-from rayaccel._variant import register, register_pausable
+from rayaccel._variant import register_pausable
 from rayaccel.bvh.layouts.bvh2 import (
     CACHE_LINE,
     PACKED_ROW_BYTES,
@@ -81,7 +81,8 @@ from rayaccel.queries import QUERY_ANY
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_start
-from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import body_kernels, memoised_layout
 from rayaccel.trace.skeleton import no_scratch, store_backtracks, store_counts, store_hit
 
 TWO32 = np.float32(2.0)
@@ -390,8 +391,7 @@ trace_rays = cpu_inline(trace_rays_py)
 trace_kernel = body_kernels(no_scratch, trace_rays)
 
 
-@register(
-    "traversal",
+@register_traversal(
     "bvh2.perfect_hash",
     options=PerfectHashOptions,
     summary="stackless ordered traversal, keys + bit trail + perfect hash: O(1) backtracking",
@@ -401,25 +401,17 @@ trace_kernel = body_kernels(no_scratch, trace_rays)
     ),
 )
 def trace_bvh2_perfect_hash(
-    bvh: Bvh2,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: PerfectHashOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    bvh: Bvh2, mesh: TriangleMesh, options: PerfectHashOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a binary BVH with backtracking in constant time.
 
     Hits are bit-identical to ``bvh2.stack``'s with every combination of the
     building-block switches (all on by default).
     """
-    opts = options or PerfectHashOptions()
     check_trail_depth(bvh, cache, "bvh2.perfect_hash")
     packed = packed_layout(bvh, mesh, cache)
     keyed = keyed_layout(packed, cache)
-    return run_trace(trace_kernel, keyed.arrays(opts.switches()), rays, query, stats)
+    return TracePlan(trace_kernel, keyed.arrays(options.switches()))
 
 
 # -- building block 5: pause and resume ----------------------------------------------------------

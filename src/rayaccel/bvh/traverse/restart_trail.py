@@ -37,12 +37,11 @@ from __future__ import annotations
 
 import operator
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from rayaccel._jit import cpu_inline
-from rayaccel._variant import register
 from rayaccel.bvh.layouts.bvh2 import STACK_ENTRY_BYTES, STACK_SIZE, Bvh2
 from rayaccel.bvh.traverse.building_blocks import (
     INF32,
@@ -55,10 +54,10 @@ from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.dtypes import FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
 from rayaccel.queries import QUERY_ANY
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_start
-from rayaccel.trace.run import body_kernels, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import body_kernels
 from rayaccel.trace.skeleton import store_backtracks, store_counts, store_hit
 
 #: The root level's bit, the trail's sentinel (deeper levels are lower bits).
@@ -233,29 +232,20 @@ trace_rays = cpu_inline(trace_rays_py)
 trace_kernel = body_kernels(make_scratch, trace_rays)
 
 
-@register(
-    "traversal",
+@register_traversal(
     "bvh2.restart_trail",
     options=RestartTrailOptions,
     summary="stackless ordered traversal restarting from the root along a per-level trail",
     reference="Laine 2010, Restart Trail for Stackless BVH Traversal",
 )
 def trace_bvh2_restart_trail(
-    bvh: Bvh2,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: RestartTrailOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    bvh: Bvh2, mesh: TriangleMesh, options: RestartTrailOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a binary BVH with a restart trail (and an optional short stack).
 
     Hits are bit-identical to ``bvh2.stack``'s.
     """
-    opts = options or RestartTrailOptions()
     check_trail_depth(bvh, cache, "bvh2.restart_trail")
     packed = packed_layout(bvh, mesh, cache)
-    arrays = RestartArrays(*packed.arrays(), operator.index(opts.short_stack))
-    return run_trace(trace_kernel, arrays, rays, query, stats)
+    arrays = RestartArrays(*packed.arrays(), operator.index(options.short_stack))
+    return TracePlan(trace_kernel, arrays)

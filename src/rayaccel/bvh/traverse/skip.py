@@ -28,19 +28,17 @@ per triangle and reference); ``stack_peak`` and the backtracking counters are 0.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 from rayaccel._jit import cpu_inline
-from rayaccel._variant import register
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.layouts.stackless_links import SKIP_ROW_BYTES, skip_layout
 from rayaccel.bvh.traverse.building_blocks import INF32, box_entry, leaf_hits
 from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.queries import QUERY_ANY
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_start
-from rayaccel.trace.run import body_kernels, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import body_kernels
 from rayaccel.trace.skeleton import no_scratch, store_counts, store_hit
 
 
@@ -107,29 +105,20 @@ trace_rays = cpu_inline(trace_rays_py)
 trace_kernel = body_kernels(no_scratch, trace_rays)
 
 
-@register(
-    "traversal",
+@register_traversal(
     "bvh2.skip",
     options=SkipOptions,
     summary="stackless fixed-order walk over pre-order nodes with skip pointers",
     reference="Smits 1998, Efficiency Issues for Ray Tracing",
 )
 def trace_bvh2_skip(
-    bvh: Bvh2,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: SkipOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    bvh: Bvh2, mesh: TriangleMesh, options: SkipOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a binary BVH with skip pointers (no stack, fixed child order).
 
     The closest ``t`` equals ``bvh2.stack``'s bit for bit; the primitive may differ at
     exact ties (see the module docstring).
     """
-    _ = options
     packed = packed_layout(bvh, mesh, cache)
     skip = skip_layout(bvh, packed, cache)
-    return run_trace(trace_kernel, skip.arrays(), rays, query, stats)
+    return TracePlan(trace_kernel, skip.arrays())

@@ -37,7 +37,6 @@ from typing import Any
 import numpy as np
 
 from rayaccel._jit import cpu_inline, keep_branch, prefetch_row
-from rayaccel._variant import register
 from rayaccel.bvh.layouts.bvh2 import (
     PACKED_ROW_BYTES,
     REF_BYTES,
@@ -52,11 +51,11 @@ from rayaccel.bvh.layouts.pairs import COUNT_COLUMN, REF_COLUMN, PairsBvh2, pair
 from rayaccel.bvh.traverse.building_blocks import lane_planes
 from rayaccel.kernels.aabb_wide import slab_test2
 from rayaccel.queries import QUERY_ANY
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
-from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import body_kernels, memoised_layout
 from rayaccel.trace.skeleton import store_counts, store_hit
 
 INF32 = np.float32(np.inf)
@@ -235,8 +234,7 @@ def stack_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) ->
     )
 
 
-@register(
-    "traversal",
+@register_traversal(
     "bvh2.stack",
     options=StackOptions,
     default=True,
@@ -244,15 +242,8 @@ def stack_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) ->
     reference="Aila & Laine 2009, Understanding the Efficiency of Ray Traversal on GPUs",
 )
 def trace_bvh2_stack(
-    bvh: Bvh2,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: StackOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    bvh: Bvh2, mesh: TriangleMesh, options: StackOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a binary BVH with an ordered stack.
 
     The pairs layout is derived from the canonical tree on first use.
@@ -262,7 +253,6 @@ def trace_bvh2_stack(
     TraversalOverflowError
         Never for trees from rayaccel builders (depth is bounded by ``MAX_DEPTH``).
     """
-    _ = options
     pairs = stack_layout(bvh, mesh, cache)
     hint = f"the tree is deeper than its {STACK_SIZE}-entry stack allows (MAX_DEPTH)"
-    return run_trace(trace_kernel, pairs.arrays(), rays, query, stats, hint)
+    return TracePlan(trace_kernel, pairs.arrays(), hint)

@@ -35,7 +35,6 @@ import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros
 
 from rayaccel._jit import cpu_inline, keep_branch, prefetch_row
-from rayaccel._variant import register
 from rayaccel.bvh.layouts.bvh2 import (
     LEAF_BYTES,
     MAX_DEPTH,
@@ -57,11 +56,11 @@ from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb_wide import slab_test4, slab_test8
 from rayaccel.queries import QUERY_ANY
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.leaf import intersect_leaf
 from rayaccel.trace.ray_setup import ray_start
-from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import body_kernels, memoised_layout
 from rayaccel.trace.skeleton import store_counts, store_hit
 
 INF32 = np.float32(np.inf)
@@ -277,8 +276,7 @@ def wide_bvh(
     )
 
 
-@register(
-    "traversal",
+@register_traversal(
     "bvh2.wide",
     options=WideOptions,
     summary="ordered stack traversal of the 4- or 8-wide collapsed tree, vector box tests",
@@ -286,19 +284,11 @@ def wide_bvh(
     "2008, Shallow Bounding Volume Hierarchies",
 )
 def trace_bvh2_wide(
-    bvh: Bvh2,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: WideOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    bvh: Bvh2, mesh: TriangleMesh, options: WideOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through the wide form of a binary BVH (see the module docstring).
 
     The derived wide rows are cached under ``"bvh2.wide4"`` or ``"bvh2.wide8"``.
     """
-    opt = options or WideOptions()
-    wide = wide_bvh(bvh, mesh, cache, opt.width)
-    return run_trace(wide_kernels(opt.width, opt.any_order), wide.arrays(), rays, query, stats)
+    wide = wide_bvh(bvh, mesh, cache, options.width)
+    return TracePlan(wide_kernels(options.width, options.any_order), wide.arrays())

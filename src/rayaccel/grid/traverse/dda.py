@@ -46,12 +46,11 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 
 from rayaccel._jit import cpu_inline
-from rayaccel._variant import register
 from rayaccel.errors import InvalidInputError
 from rayaccel.grid.layouts.irregular import IrregularGrid
 from rayaccel.grid.layouts.two_level import TwoLevelGrid, TwoLevelTrace, two_level_trace_layout
@@ -78,16 +77,19 @@ from rayaccel.grid.traverse.walk import (
     walk_start,
 )
 from rayaccel.queries import QUERY_ANY
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_start
-from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import body_kernels, memoised_layout
 from rayaccel.trace.skeleton import store_hit
 
 INF32 = np.float32(np.inf)
 MAX_MAILBOX = 64
 _CELL_BYTES = 8
 _PRIM_BYTES = 40
+
+#: The grids ``grid.dda`` and ``grid.skip`` walk.
+Grid: TypeAlias = "UniformGrid | TwoLevelGrid | IrregularGrid"
 
 
 @dataclass(frozen=True, slots=True)
@@ -301,21 +303,13 @@ def walk_layout(layout: GridTrace | TwoLevelTrace, mailbox: int, skip: bool) -> 
     return walked
 
 
-def _trace(
-    grid: UniformGrid | TwoLevelGrid | IrregularGrid,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    query: str,
-    stats: bool,
-    options: DdaOptions | None,
-    cache: dict[str, Any] | None,
-    skip: bool,
-) -> HitBatch:
-    opts = options or DdaOptions()
+def _plan(
+    grid: Grid, mesh: TriangleMesh, options: DdaOptions, cache: LayoutCache, skip: bool
+) -> TracePlan:
     if isinstance(grid, IrregularGrid):
-        from rayaccel.grid.traverse.irregular import trace_irregular
+        from rayaccel.grid.traverse.irregular import irregular_plan
 
-        return trace_irregular(grid, mesh, rays, query, stats, opts.mailbox, cache)
+        return irregular_plan(grid, mesh, options.mailbox, cache)
     if isinstance(grid, TwoLevelGrid):
         layout: GridTrace | TwoLevelTrace = memoised_layout(
             cache, "grid.two_level_trace", lambda: two_level_trace_layout(grid, mesh.hit_rows())
@@ -324,12 +318,11 @@ def _trace(
         layout = memoised_layout(
             cache, "grid.trace", lambda: trace_layout(grid, mesh.hit_rows(), 0)
         )
-    walked = walk_layout(layout, opts.mailbox, skip)
-    return run_trace(kernels_for(isinstance(grid, TwoLevelGrid)), walked, rays, query, stats)
+    walked = walk_layout(layout, options.mailbox, skip)
+    return TracePlan(kernels_for(isinstance(grid, TwoLevelGrid)), walked)
 
 
-@register(
-    "traversal",
+@register_traversal(
     "grid.dda",
     options=DdaOptions,
     default=True,
@@ -337,43 +330,28 @@ def _trace(
     reference="Amanatides & Woo 1987, A Fast Voxel Traversal Algorithm for Ray Tracing",
 )
 def trace_grid_dda(
-    grid: UniformGrid | TwoLevelGrid | IrregularGrid,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: DdaOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    grid: Grid, mesh: TriangleMesh, options: DdaOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a uniform grid cell by cell, a two-level one DDA in DDA.
 
     Skip data is ignored. An irregular grid is walked cell by cell through its
     expanded boxes (:mod:`rayaccel.grid.traverse.irregular`).
     """
-    return _trace(grid, mesh, rays, query, stats, options, cache, False)
+    return _plan(grid, mesh, options, cache, False)
 
 
-@register(
-    "traversal",
+@register_traversal(
     "grid.skip",
     options=DdaOptions,
     summary="3D-DDA jumping over the grid's empty boxes (distance field, macro regions, mip-map)",
     reference="Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure",
 )
 def trace_grid_skip(
-    grid: UniformGrid | TwoLevelGrid | IrregularGrid,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: DdaOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    grid: Grid, mesh: TriangleMesh, options: DdaOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a uniform grid, jumping over empty space with its skip data.
 
     A grid without skip data (``grid.uniform``) is walked cell by cell, and an
     irregular grid as by :func:`trace_grid_dda`.
     """
-    return _trace(grid, mesh, rays, query, stats, options, cache, True)
+    return _plan(grid, mesh, options, cache, True)

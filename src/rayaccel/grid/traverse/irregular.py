@@ -37,10 +37,10 @@ from rayaccel.grid.traverse.walk import (
     walk_start,
 )
 from rayaccel.queries import QUERY_ANY
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_start
-from rayaccel.trace.run import body_kernels, memoised_layout, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan
+from rayaccel.trace.run import body_kernels, memoised_layout
 from rayaccel.trace.skeleton import store_hit
 
 _CELL_BYTES = 36
@@ -121,15 +121,8 @@ def irregular_layout(
     return with_mailbox(layout, mailbox)
 
 
-def trace_irregular(
-    grid: IrregularGrid,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    query: str,
-    stats: bool,
-    mailbox: int,
-    cache: dict[str, Any] | None,
-) -> HitBatch:
-    """Trace rays through an irregular grid (the body of ``grid.dda`` and ``grid.skip``)."""
-    layout = irregular_layout(grid, mesh, cache, mailbox)
-    return run_trace(trace_kernel, layout, rays, query, stats)
+def irregular_plan(
+    grid: IrregularGrid, mesh: TriangleMesh, mailbox: int, cache: LayoutCache
+) -> TracePlan:
+    """Return the plan of ``grid.dda`` and ``grid.skip`` on an irregular grid."""
+    return TracePlan(trace_kernel, irregular_layout(grid, mesh, cache, mailbox))

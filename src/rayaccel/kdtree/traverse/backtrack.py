@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 
-from rayaccel._variant import register
 from rayaccel.dtypes import REAL
 from rayaccel.kdtree.layouts.kdtree import KdTree
 from rayaccel.kdtree.traverse.common import kd_trace_layout
@@ -24,9 +23,9 @@ from rayaccel.kdtree.traverse.stackless import (
     stackless_arrays,
     trace_kernel,
 )
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.run import memoised_layout, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import memoised_layout
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,25 +61,14 @@ def _arrays(kd: KdTree, mesh: TriangleMesh, cache: dict[str, Any] | None) -> Sta
     )
 
 
-@register(
-    "traversal",
+@register_traversal(
     "kdtree.backtrack",
     options=KdBacktrackOptions,
     summary="kd-backtrack: stackless, each descent from the nearest ancestor still ahead",
     reference="Foley & Sugerman 2005, KD-Tree Acceleration Structures for a GPU Raytracer",
 )
 def trace_kdtree_backtrack(
-    kd: KdTree,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: KdBacktrackOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    kd: KdTree, mesh: TriangleMesh, options: KdBacktrackOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a kd-tree with kd-backtrack."""
-    _ = options
-    return run_trace(
-        trace_kernel(METHOD_BACKTRACK), _arrays(kd, mesh, cache), rays, query, stats
-    )
+    return TracePlan(trace_kernel(METHOD_BACKTRACK), _arrays(kd, mesh, cache))

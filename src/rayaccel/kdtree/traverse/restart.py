@@ -10,15 +10,12 @@ Counters: those of ``kdtree.stack`` plus ``restarts`` (descents after the first)
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
-from rayaccel._variant import register
 from rayaccel.kdtree.layouts.kdtree import KdTree
 from rayaccel.kdtree.traverse.common import kd_trace_layout
 from rayaccel.kdtree.traverse.stackless import METHOD_RESTART, stackless_arrays, trace_kernel
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.run import run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
 
 
 @dataclass(frozen=True, slots=True)
@@ -26,24 +23,15 @@ class KdRestartOptions:
     """Options of ``kdtree.restart`` (none; kept for a uniform API)."""
 
 
-@register(
-    "traversal",
+@register_traversal(
     "kdtree.restart",
     options=KdRestartOptions,
     summary="kd-restart: stackless, every leaf found by a descent from the root",
     reference="Foley & Sugerman 2005, KD-Tree Acceleration Structures for a GPU Raytracer",
 )
 def trace_kdtree_restart(
-    kd: KdTree,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: KdRestartOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    kd: KdTree, mesh: TriangleMesh, options: KdRestartOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a kd-tree with kd-restart."""
-    _ = options
     arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache))
-    return run_trace(trace_kernel(METHOD_RESTART), arrays, rays, query, stats)
+    return TracePlan(trace_kernel(METHOD_RESTART), arrays)

@@ -18,19 +18,17 @@ and ropes in ``bytes`` (48 bytes per leaf).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from rayaccel._jit import cpu_kernel
-from rayaccel._variant import register
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, KdTree
 from rayaccel.kdtree.traverse.common import kd_trace_layout
 from rayaccel.kdtree.traverse.stackless import METHOD_ROPES, stackless_arrays, trace_kernel
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.run import memoised_layout, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import memoised_layout
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,8 +114,7 @@ def rope_layout(kd: KdTree, optimize: bool) -> KdRopes:
     return KdRopes(leaf_box, leaf_rope)
 
 
-@register(
-    "traversal",
+@register_traversal(
     "kdtree.ropes",
     options=KdRopesOptions,
     summary="stackless traversal along leaf-face ropes (leaf boxes, optional rope optimisation)",
@@ -125,20 +122,12 @@ def rope_layout(kd: KdTree, optimize: bool) -> KdRopes:
     "Performance GPU Ray Tracing",
 )
 def trace_kdtree_ropes(
-    kd: KdTree,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: KdRopesOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    kd: KdTree, mesh: TriangleMesh, options: KdRopesOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a kd-tree along its ropes."""
-    opt = options or KdRopesOptions()
-    name = "kdtree.ropes" if opt.optimize else "kdtree.ropes_plain"
-    ropes = memoised_layout(cache, name, lambda: rope_layout(kd, opt.optimize))
+    name = "kdtree.ropes" if options.optimize else "kdtree.ropes_plain"
+    ropes = memoised_layout(cache, name, lambda: rope_layout(kd, options.optimize))
     arrays = stackless_arrays(
         kd_trace_layout(kd, mesh, cache), ropes.leaf_box, ropes.leaf_rope, method=METHOD_ROPES
     )
-    return run_trace(trace_kernel(METHOD_ROPES), arrays, rays, query, stats)
+    return TracePlan(trace_kernel(METHOD_ROPES), arrays)

@@ -11,16 +11,13 @@ three entries cost only 3% more nodes than a full stack. Counters: those of
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
-from rayaccel._variant import register
 from rayaccel.errors import InvalidInputError
 from rayaccel.kdtree.layouts.kdtree import STACK_SIZE, KdTree
 from rayaccel.kdtree.traverse.common import kd_trace_layout
 from rayaccel.kdtree.traverse.stackless import METHOD_SHORT_STACK, stackless_arrays, trace_kernel
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.run import run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
 
 
 @dataclass(frozen=True, slots=True)
@@ -40,26 +37,17 @@ class KdShortStackOptions:
             raise InvalidInputError(f"size must be in 1..{STACK_SIZE}, got {self.size}")
 
 
-@register(
-    "traversal",
+@register_traversal(
     "kdtree.short_stack",
     options=KdShortStackOptions,
     summary="short stack (a ring of far children) with push-down restarts",
     reference="Horn, Sugerman, Houston, Hanrahan 2007, Interactive k-D Tree GPU Raytracing",
 )
 def trace_kdtree_short_stack(
-    kd: KdTree,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: KdShortStackOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    kd: KdTree, mesh: TriangleMesh, options: KdShortStackOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a kd-tree with a short stack."""
-    opt = options or KdShortStackOptions()
     arrays = stackless_arrays(
-        kd_trace_layout(kd, mesh, cache), ring_size=int(opt.size), method=METHOD_SHORT_STACK
+        kd_trace_layout(kd, mesh, cache), ring_size=int(options.size), method=METHOD_SHORT_STACK
     )
-    return run_trace(trace_kernel(METHOD_SHORT_STACK), arrays, rays, query, stats)
+    return TracePlan(trace_kernel(METHOD_SHORT_STACK), arrays)

@@ -34,7 +34,6 @@ from typing import Any
 import numpy as np
 
 from rayaccel._jit import cpu_inline
-from rayaccel._variant import register
 from rayaccel.errors import InvalidInputError
 from rayaccel.kdtree.layouts.kdtree import NODE_BYTES, STACK_SIZE, KdTree
 from rayaccel.kdtree.traverse.common import (
@@ -46,10 +45,10 @@ from rayaccel.kdtree.traverse.common import (
 )
 from rayaccel.kdtree.traverse.common import make_scratch as make_scratch
 from rayaccel.queries import QUERY_ANY
-from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_start
-from rayaccel.trace.run import body_kernels, run_trace
+from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
+from rayaccel.trace.run import body_kernels
 from rayaccel.trace.skeleton import store_counts, store_hit
 
 INF32 = np.float32(np.inf)
@@ -198,8 +197,7 @@ def trace_kernel(order: int) -> Any:
     return body_kernels(make_scratch, _body(order))
 
 
-@register(
-    "traversal",
+@register_traversal(
     "kdtree.stack",
     options=KdStackOptions,
     default=True,
@@ -208,19 +206,10 @@ def trace_kernel(order: int) -> Any:
     "Algorithms",
 )
 def trace_kdtree_stack(
-    kd: KdTree,
-    mesh: TriangleMesh,
-    rays: RayBatch,
-    *,
-    query: str = "closest",
-    stats: bool = False,
-    options: KdStackOptions | None = None,
-    cache: dict[str, Any] | None = None,
-) -> HitBatch:
+    kd: KdTree, mesh: TriangleMesh, options: KdStackOptions, cache: LayoutCache
+) -> TracePlan:
     """Trace rays through a kd-tree front to back with a stack."""
-    opt = options or KdStackOptions()
     layout = kd_trace_layout(kd, mesh, cache)
-    return run_trace(
-        trace_kernel(_ORDERS[opt.order]), layout.arrays(), rays, query, stats,
-        "the tree is deeper than MAX_DEPTH",
-    )  # fmt: skip
+    return TracePlan(
+        trace_kernel(_ORDERS[options.order]), layout.arrays(), "the tree is deeper than MAX_DEPTH"
+    )

@@ -1,0 +1,109 @@
+"""``register_traversal``: a CPU traversal is a plan, its kernel and the layout it reads.
+
+Every traversal of every family has the same public form, ``trace(structure, mesh,
+rays, *, query, stats, options, cache) -> HitBatch``, and the same tail: derive the
+layout (memoised in ``cache``), pick the compiled kernel, :func:`run_trace`. What
+differs is only the plan, so a traversal module writes the plan and this decorator
+makes and registers the public function around it, with the shared signature and the
+shared numpydoc sections (:func:`rayaccel._variant.with_shared_sections`).
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+from collections.abc import Callable
+from typing import Any, NamedTuple, TypeAlias
+
+from rayaccel._variant import register
+from rayaccel.rays.batch import HitBatch, RayBatch
+from rayaccel.trace.run import DEFAULT_OVERFLOW_HINT, run_trace
+
+#: The memo of derived layouts a traversal's plan receives (an ``Accel`` passes its own).
+LayoutCache: TypeAlias = "dict[str, Any] | None"
+
+
+class TracePlan(NamedTuple):
+    """What a traversal runs: the kernel picker, the layout arrays, the overflow reason.
+
+    Attributes
+    ----------
+    kernel_for : callable
+        ``kernel_for(query, with_stats, parallel)``, usually
+        :func:`rayaccel.trace.run.body_kernels` of the traversal.
+    arrays : NamedTuple of arrays
+        What the kernel's ``layout`` argument receives.
+    overflow_hint : str
+        Why rays can overflow the traversal's stack, for the error message.
+    """
+
+    kernel_for: Callable[[int, bool, bool], Any]
+    arrays: Any
+    overflow_hint: str = DEFAULT_OVERFLOW_HINT
+
+
+def _public_signature(plan: Callable[..., Any], options: type) -> inspect.Signature:
+    """Return the traversal's public signature: the plan's first two parameters, then the rest."""
+    structure, mesh = list(inspect.signature(plan).parameters.values())[:2]
+    keyword = inspect.Parameter.KEYWORD_ONLY
+    positional = inspect.Parameter.POSITIONAL_OR_KEYWORD
+    return inspect.Signature(
+        [
+            structure.replace(kind=positional),
+            mesh.replace(kind=positional),
+            inspect.Parameter("rays", positional, annotation="RayBatch"),
+            inspect.Parameter("query", keyword, default="closest", annotation="str"),
+            inspect.Parameter("stats", keyword, default=False, annotation="bool"),
+            inspect.Parameter(
+                "options", keyword, default=None, annotation=f"{options.__name__} | None"
+            ),
+            inspect.Parameter("cache", keyword, default=None, annotation="dict[str, Any] | None"),
+        ],
+        return_annotation="HitBatch",
+    )
+
+
+def register_traversal(
+    key: str,
+    *,
+    options: type,
+    summary: str,
+    reference: str = "",
+    default: bool = False,
+) -> Callable[[Callable[..., TracePlan]], Callable[..., HitBatch]]:
+    """Return a decorator that registers a traversal from its plan.
+
+    The decorated ``plan(structure, mesh, options, cache) -> TracePlan`` receives the
+    options (their defaults when the caller passes none) and the ``Accel``'s layout
+    cache. The decorator returns, and registers as the variant ``key``, the public
+    ``trace(structure, mesh, rays, *, query="closest", stats=False, options=None,
+    cache=None) -> HitBatch`` that runs the plan with :func:`run_trace`; it keeps the
+    plan's name and docstring.
+    """
+    options_type = options
+
+    def decorate(plan: Callable[..., TracePlan]) -> Callable[..., HitBatch]:
+        @functools.wraps(plan)
+        def trace(
+            structure: Any,
+            mesh: Any,
+            rays: RayBatch,
+            *,
+            query: str = "closest",
+            stats: bool = False,
+            options: Any = None,
+            cache: dict[str, Any] | None = None,
+        ) -> HitBatch:
+            chosen = options_type() if options is None else options
+            kernel_for, arrays, overflow_hint = plan(structure, mesh, chosen, cache)
+            return run_trace(kernel_for, arrays, rays, query, stats, overflow_hint)
+
+        del trace.__wrapped__
+        trace.__signature__ = _public_signature(plan, options)  # type: ignore[attr-defined]
+        registered: Callable[..., HitBatch] = register(
+            "traversal", key, options=options, summary=summary, reference=reference,
+            default=default,
+        )(trace)  # fmt: skip
+        return registered
+
+    return decorate
