@@ -49,11 +49,17 @@ from typing import Any
 
 import numba
 from llvmlite import ir
-from numba.core import cgutils, serialize, types
+from numba.core import cgutils, inline_closurecall, serialize, types
 from numba.core.caching import FunctionCache
 from numba.core.dispatcher import Dispatcher
 from numba.core.errors import NumbaPerformanceWarning
 from numba.extending import intrinsic
+
+from rayaccel._inline_copy import share_copy_memo
+
+# Before any kernel compiles: numba's inliner copies each inlined callee without the
+# quadratic block-by-block copy (:mod:`rayaccel._inline_copy`).
+share_copy_memo(inline_closurecall)
 
 FASTMATH = frozenset({"nsz", "arcp", "contract"})
 
