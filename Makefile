@@ -45,10 +45,11 @@ demo: $(STAMP) system-deps
 
 # Kernels compile on every core first (`rayaccel cache warm`: the serial kernels and the
 # parallel ones plain queries reach, all the default tier runs); the suite then loads them,
-# one pytest-xdist worker per core, each test file on one worker (its fixtures built once).
+# one pytest-xdist worker per core, each test file on one worker (its fixtures built once),
+# the files in the order tests/conftest.py gives them (the longest first).
 test: $(STAMP) system-deps
 	$(BIN)/rayaccel cache warm --quiet --common-parallel
-	$(BIN)/python -m pytest -q -n auto --dist loadfile
+	$(BIN)/python -m pytest -q -n auto --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP) system-deps
 	$(BIN)/python benchmarks/bench_core.py --threads 2
