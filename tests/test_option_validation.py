@@ -111,6 +111,10 @@ def test_masked_arrays_with_hidden_values_are_refused(accel):
     tmax = np.ma.masked_invalid([1.0, np.nan, 2.0, 3.0])
     with pytest.raises(InvalidInputError, match="tmax: a masked array"):
         accel.intersect(origins.data, directions, tmax=tmax)
+    points = np.ma.masked_array(np.zeros((2, 3)), mask=[[0, 0, 0], [0, 0, 1]])
+    for query in (accel.compute_closest_points, accel.compute_occupancy):
+        with pytest.raises(InvalidInputError, match="points: a masked array with 1 masked"):
+            query(points)
     vertices = np.ma.masked_array(np.eye(3), mask=[[0, 0, 0], [0, 1, 0], [0, 0, 0]])
     with pytest.raises(InvalidInputError, match="vertices: a masked array"):
         rayaccel.TriangleMesh(vertices, [[0, 1, 2]])

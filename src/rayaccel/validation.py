@@ -45,8 +45,10 @@ def rows_of_three(name: str, value: object, rows: str, kind: str) -> npt.NDArray
     Raises
     ------
     InvalidInputError
-        ``value`` is not an array, or not two-dimensional with three columns.
+        ``value`` is not an array, not two-dimensional with three columns, or a masked
+        array with masked entries (:func:`reject_masked`).
     """
+    reject_masked(name, value)
     try:
         array = np.asarray(value)
     except (TypeError, ValueError) as exc:
