@@ -61,12 +61,7 @@ def trace_rays_py(
     bvh, scratch, origin, direction, tmin, tmax, begin, end,
     hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
 ):  # fmt: skip
-    """Trace rays ``begin:end`` over ``bvh`` (LinkedArrays) with a bitstack; return 0.
-
-    The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
-    :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
-    counters in ``counters[r]``.
-    """
+    """Trace rays ``begin:end`` over ``bvh`` (LinkedArrays) with a bitstack; return 0."""
     _ = scratch
     box = bvh.inner_box
     refs = bvh.inner_ref
@@ -146,9 +141,8 @@ def trace_rays_py(
     return 0
 
 
-trace_rays = cpu_inline(trace_rays_py)
 #: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
-trace_kernel = body_kernels(no_scratch, trace_rays)
+trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 
 @register_traversal(

@@ -115,12 +115,7 @@ def trace_rays_py(
     bvh, scratch, origin, direction, tmin, tmax, begin, end,
     hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
 ):  # fmt: skip
-    """Trace rays ``begin:end`` over ``bvh`` (RestartArrays) with a restart trail; return 0.
-
-    The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
-    :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
-    counters in ``counters[r]``.
-    """
+    """Trace rays ``begin:end`` over ``bvh`` (RestartArrays) with a restart trail; return 0."""
     ss_ref, ss_t, ss_level = scratch
     cap = bvh.short_stack
     box = bvh.inner_box
@@ -227,9 +222,8 @@ def trace_rays_py(
 
 
 make_scratch = cpu_inline(make_scratch_py)
-trace_rays = cpu_inline(trace_rays_py)
 #: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
-trace_kernel = body_kernels(make_scratch, trace_rays)
+trace_kernel = body_kernels(make_scratch, cpu_inline(trace_rays_py))
 
 
 @register_traversal(

@@ -51,12 +51,7 @@ def trace_rays_py(
     bvh, scratch, origin, direction, tmin, tmax, begin, end,
     hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
 ):  # fmt: skip
-    """Walk the pre-order rows of ``bvh`` (SkipArrays) for rays ``begin:end``; return 0.
-
-    The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
-    :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
-    counters in ``counters[r]``.
-    """
+    """Walk the pre-order rows of ``bvh`` (SkipArrays) for rays ``begin:end``; return 0."""
     _ = scratch
     rows = bvh.node_row
     ints = bvh.node_int
@@ -100,9 +95,8 @@ def trace_rays_py(
     return 0
 
 
-trace_rays = cpu_inline(trace_rays_py)
 #: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
-trace_kernel = body_kernels(no_scratch, trace_rays)
+trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 
 @register_traversal(

@@ -83,12 +83,7 @@ def trace_rays_py(
     bvh, scratch, origin, direction, tmin, tmax, begin, end,
     hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
 ):  # fmt: skip
-    """Trace rays ``begin:end`` through ``bvh`` (PairsArrays); return how many overflowed.
-
-    The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
-    :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
-    counters in ``counters[r]``.
-    """
+    """Trace rays ``begin:end`` through ``bvh`` (PairsArrays); return how many overflowed."""
     stack_ref, stack_count, stack_t, lane_t = scratch
     box = bvh.box
     refs = bvh.ref
@@ -217,9 +212,8 @@ def trace_rays_py(
 
 
 make_scratch = cpu_inline(make_scratch_py)
-trace_rays = cpu_inline(trace_rays_py)
 #: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
-trace_kernel = body_kernels(make_scratch, trace_rays)
+trace_kernel = body_kernels(make_scratch, cpu_inline(trace_rays_py))
 
 
 def packed_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) -> PackedBvh2:

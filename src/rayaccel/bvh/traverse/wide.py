@@ -125,12 +125,7 @@ def wide_body(width: int, any_order: str) -> tuple[Any, Any]:
         bvh, scratch, origin, direction, tmin, tmax, begin, end,
         hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
     ):  # fmt: skip
-        """Trace rays ``begin:end`` through ``bvh`` (WideArrays); return how many overflowed.
-
-        The body of :func:`rayaccel.trace.skeleton.trace_kernel`: stores each hit with
-        :func:`rayaccel.trace.skeleton.store_hit` and, with ``with_stats``, each ray's
-        counters in ``counters[r]``.
-        """
+        """Trace rays ``begin:end`` through ``bvh`` (WideArrays); return how many overflowed."""
         stack_ref, stack_t, lane_t = scratch
         box = bvh.box
         refs = bvh.ref
