@@ -42,25 +42,16 @@ class TracePlan(NamedTuple):
     overflow_hint: str = DEFAULT_OVERFLOW_HINT
 
 
-def _public_signature(plan: Callable[..., Any], options: type) -> inspect.Signature:
-    """Return the traversal's public signature: the plan's first two parameters, then the rest."""
+def _public_signature(trace: Callable[..., HitBatch], plan: Callable[..., TracePlan],
+                      options: type) -> inspect.Signature:  # fmt: skip
+    """Return ``trace``'s signature with the plan's first two parameters and the options type."""
+    public = list(inspect.signature(trace).parameters.values())
     structure, mesh = list(inspect.signature(plan).parameters.values())[:2]
-    keyword = inspect.Parameter.KEYWORD_ONLY
-    positional = inspect.Parameter.POSITIONAL_OR_KEYWORD
-    return inspect.Signature(
-        [
-            structure.replace(kind=positional),
-            mesh.replace(kind=positional),
-            inspect.Parameter("rays", positional, annotation="RayBatch"),
-            inspect.Parameter("query", keyword, default="closest", annotation="str"),
-            inspect.Parameter("stats", keyword, default=False, annotation="bool"),
-            inspect.Parameter(
-                "options", keyword, default=None, annotation=f"{options.__name__} | None"
-            ),
-            inspect.Parameter("cache", keyword, default=None, annotation="dict[str, Any] | None"),
-        ],
-        return_annotation="HitBatch",
-    )
+    public[0] = structure.replace(kind=public[0].kind)
+    public[1] = mesh.replace(kind=public[1].kind)
+    public = [p.replace(annotation=f"{options.__name__} | None") if p.name == "options" else p
+              for p in public]  # fmt: skip
+    return inspect.signature(trace).replace(parameters=public)
 
 
 def register_traversal(
@@ -83,7 +74,8 @@ def register_traversal(
     options_type = options
 
     def decorate(plan: Callable[..., TracePlan]) -> Callable[..., HitBatch]:
-        @functools.wraps(plan)
+        # The plan's name and docstring; its annotations are not the public function's.
+        @functools.wraps(plan, assigned=("__module__", "__name__", "__qualname__", "__doc__"))
         def trace(
             structure: Any,
             mesh: Any,
@@ -99,7 +91,7 @@ def register_traversal(
             return run_trace(kernel_for, arrays, rays, query, stats, overflow_hint)
 
         del trace.__wrapped__
-        trace.__signature__ = _public_signature(plan, options)  # type: ignore[attr-defined]
+        trace.__signature__ = _public_signature(trace, plan, options)  # type: ignore[attr-defined]
         registered: Callable[..., HitBatch] = register(
             "traversal", key, options=options, summary=summary, reference=reference,
             default=default,

@@ -330,7 +330,10 @@ def _plan(
     reference="Amanatides & Woo 1987, A Fast Voxel Traversal Algorithm for Ray Tracing",
 )
 def trace_grid_dda(
-    grid: Grid, mesh: TriangleMesh, options: DdaOptions, cache: LayoutCache
+    grid: UniformGrid | TwoLevelGrid | IrregularGrid,
+    mesh: TriangleMesh,
+    options: DdaOptions,
+    cache: LayoutCache,
 ) -> TracePlan:
     """Trace rays through a uniform grid cell by cell, a two-level one DDA in DDA.
 
@@ -347,7 +350,10 @@ def trace_grid_dda(
     reference="Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure",
 )
 def trace_grid_skip(
-    grid: Grid, mesh: TriangleMesh, options: DdaOptions, cache: LayoutCache
+    grid: UniformGrid | TwoLevelGrid | IrregularGrid,
+    mesh: TriangleMesh,
+    options: DdaOptions,
+    cache: LayoutCache,
 ) -> TracePlan:
     """Trace rays through a uniform grid, jumping over empty space with its skip data.
 
