@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -258,7 +259,11 @@ def test_dask_local_cluster_runs_every_cell_once_and_survives_a_dead_worker(fini
     """A LocalCluster of two workers, one of which dies in its first counters cell.
 
     The sweep runs in a subprocess (``dask_dying_worker.py``), so the Dask scheduler
-    and client threads never live in the test process.
+    and client threads never live in the test process. The scheduler's active memory
+    manager runs every 20 ms there: it drops the replicas of scattered inputs that it sees
+    no use for, so the dead worker may have held the only copy of a mesh or ray set
+    (which cannot be recomputed: its cells are cancelled for "lost dependencies" and the
+    sweep must scatter it again).
     """
     results, _ = finished
     config_path = tmp_path / "tiny.toml"
@@ -270,6 +275,7 @@ def test_dask_local_cluster_runs_every_cell_once_and_survives_a_dead_worker(fini
         [sys.executable, str(script), str(config_path), str(out),
          str(results.with_suffix(".rays")), str(marker)],
         capture_output=True, text=True, timeout=600, check=False,
+        env={**os.environ, "DASK_DISTRIBUTED__SCHEDULER__ACTIVE_MEMORY_MANAGER__INTERVAL": "20ms"},
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads(done.stdout.strip().splitlines()[-1])

@@ -21,7 +21,8 @@ home worker (structures spread over the workers by their cell counts); its cells
 prefer that worker, and a cell that Dask moves to another worker takes a copy of
 the structure with it rather than building it again. A
 worker that dies has its cell re-run by Dask (up to its ``allowed-failures``), and
-then by the sweep, up to :data:`MAX_ATTEMPTS` times in all. The single writer is
+then by the sweep, up to :data:`MAX_ATTEMPTS` times in all; a mesh or ray set that
+died with it (scattered data cannot be recomputed) is scattered again first. The single writer is
 this process.
 """
 
@@ -216,6 +217,58 @@ def _killed_record(cell: Cell, exc: BaseException) -> Record:
     return record
 
 
+class _SceneInputs:
+    """A scene's mesh, ray sets and counter structures on the cluster, made again when lost.
+
+    Scattered data cannot be recomputed: when the worker holding its only copy dies (the
+    scheduler's active memory manager drops replicas it sees no use for), every task that
+    needs it is cancelled for "lost dependencies". So each cell takes its inputs from here
+    when it is submitted, and a lost mesh or ray set is scattered again and a lost
+    structure build submitted again. The client keeps the scene's mesh and ray sets until
+    its cells are done.
+    """
+
+    def __init__(self, client: Any, config: SweepConfig, mesh: Any, raysets: dict[str, Any],
+                 home: dict[str, str]) -> None:  # fmt: skip
+        self.client = client
+        self.config = config
+        self.mesh = mesh
+        self.raysets = raysets
+        self.home = home
+        self.futures: dict[str, Any] = {}
+
+    def _live(self, name: str, make: Callable[[], Any]) -> Any:
+        future = self.futures.get(name)
+        if future is None or future.status in ("lost", "cancelled", "error"):
+            future = self.futures[name] = make()
+        return future
+
+    def renew(self) -> None:
+        """Make every input again for the next cells (a cell failed without running)."""
+        self.futures.clear()
+
+    def mesh_future(self) -> Any:
+        """Return the scattered mesh (on every worker)."""
+        return self._live("mesh", lambda: self.client.scatter(self.mesh, broadcast=True))
+
+    def rayset_future(self, name: str | None) -> Any:
+        """Return the scattered ray set ``name`` (None for a cell without one)."""
+        if not name:
+            return None
+        rays = self.raysets[name]
+        return self._live(f"rays:{name}", lambda: self.client.scatter(rays, broadcast=True))
+
+    def structure_future(self, builder: str) -> Any:
+        """Return the build task of ``builder``'s counter structure (on its home worker)."""
+        return self._live(
+            f"structure:{builder}",
+            lambda: self.client.submit(
+                counter_structure, self.config, self.mesh_future(), builder,
+                workers=[self.home[builder]], allow_other_workers=True, pure=False, priority=1,
+            ),
+        )  # fmt: skip
+
+
 class _DaskRunner(_Runner):
     """Cells on a ``dask.distributed`` cluster (see the module docstring).
 
@@ -237,9 +290,9 @@ class _DaskRunner(_Runner):
                                         dashboard_address=None)  # fmt: skip
             self.client = Client(self.cluster)
         self.attempts: dict[str, int] = {}
-        # In-flight futures: their cell, the host of an exclusive cell, the call's arguments
-        self.futures: dict[Any, tuple[Cell, str | None, tuple[Any, ...]]] = {}
-        self.exclusive: deque[tuple[Cell, tuple[Any, ...]]] = deque()
+        # In-flight futures: their cell, the host of an exclusive cell, the scene's inputs
+        self.futures: dict[Any, tuple[Cell, str | None, _SceneInputs]] = {}
+        self.exclusive: deque[tuple[Cell, _SceneInputs]] = deque()
         self.busy: dict[str, bool] = {}
         self.done = as_completed()
 
@@ -255,9 +308,10 @@ class _DaskRunner(_Runner):
             hosts.setdefault(info.get("host", address), []).append(address)
         return {host: sorted(addresses) for host, addresses in hosts.items()}
 
-    def _submit(self, cell: Cell, host: str | None, args: tuple[Any, ...]) -> None:
+    def _submit(self, cell: Cell, host: str | None, inputs: _SceneInputs) -> None:
         self.attempts[cell.key] = self.attempts.get(cell.key, 0) + 1
-        config, mesh_f, rayset, home, accel_f = args
+        config, mesh_f = inputs.config, inputs.mesh_future()
+        rayset = inputs.rayset_future(cell.rayset)
         # A host, not a worker address, for timed cells: a worker that dies is
         # replaced under another address, and the cell must be able to run there.
         # Counter cells prefer their structure's worker but may run on any.
@@ -265,33 +319,35 @@ class _DaskRunner(_Runner):
             future = self.client.submit(run_cell, cell, config, mesh_f, rayset, workers=[host],
                                         pure=False)  # fmt: skip
         else:
-            future = self.client.submit(run_cell, cell, config, mesh_f, rayset, accel_f,
-                                        workers=[home], allow_other_workers=True,
-                                        pure=False)  # fmt: skip
-        self.futures[future] = (cell, host, args)
+            future = self.client.submit(run_cell, cell, config, mesh_f, rayset,
+                                        inputs.structure_future(cell.builder),
+                                        workers=[inputs.home[cell.builder]],
+                                        allow_other_workers=True, pure=False)  # fmt: skip
+        self.futures[future] = (cell, host, inputs)
         self.done.add(future)
 
     def _feed_exclusive(self) -> None:
         for host, busy in self.busy.items():
             if not busy and self.exclusive:
                 self.busy[host] = True
-                cell, args = self.exclusive.popleft()
-                self._submit(cell, host, args)
+                cell, inputs = self.exclusive.popleft()
+                self._submit(cell, host, inputs)
 
     def _collect(self, future: Any, state: _State) -> None:
         """Record a finished future's cell, or submit it again."""
-        cell, host, args = self.futures.pop(future)
+        cell, host, inputs = self.futures.pop(future)
         try:
             record = future.result()
-        except Exception as exc:  # the worker died more often than Dask allows
+        except Exception as exc:  # the worker died more often than Dask allows, or lost inputs
             record = _killed_record(cell, exc)
+            inputs.renew()
         if host is not None:
             self.busy[host] = False
         if record["status"] != "ok" and self.attempts[cell.key] < MAX_ATTEMPTS:
             if host is not None:
-                self.exclusive.appendleft((cell, args))
+                self.exclusive.appendleft((cell, inputs))
             else:
-                self._submit(cell, None, args)
+                self._submit(cell, None, inputs)
         else:
             state.finish(record, self.attempts[cell.key])
         self._feed_exclusive()
@@ -323,22 +379,17 @@ class _DaskRunner(_Runner):
             if not cell.exclusive:
                 groups[cell.builder] = groups.get(cell.builder, 0) + 1
         home = {b: addresses[i] for b, i in balance(groups, len(addresses)).items()}
-        mesh_f = client.scatter(mesh, broadcast=True)
-        sets_f = {name: client.scatter(rs, broadcast=True) for name, rs in raysets.items()}
-        accels_f = {}
-        for builder, address in home.items():
-            accels_f[builder] = client.submit(
-                counter_structure, config, mesh_f, builder, workers=[address],
-                allow_other_workers=True, pure=False, priority=1,
-            )  # fmt: skip
+        inputs = _SceneInputs(client, config, mesh, raysets, home)
+        inputs.mesh_future()
+        for name in raysets:
+            inputs.rayset_future(name)
+        for builder in home:
+            inputs.structure_future(builder)
         for cell in cells:
-            rayset = sets_f.get(cell.rayset) if cell.rayset else None
-            accel_f = None if cell.exclusive else accels_f.get(cell.builder)
-            args = (config, mesh_f, rayset, home.get(cell.builder), accel_f)
             if cell.exclusive:
-                self.exclusive.append((cell, args))
+                self.exclusive.append((cell, inputs))
             else:
-                self._submit(cell, None, args)
+                self._submit(cell, None, inputs)
         self._feed_exclusive()
         if not pipelined:
             self.drain(state)
