@@ -236,6 +236,9 @@ class _SceneInputs:
         self.raysets = raysets
         self.home = home
         self.futures: dict[str, Any] = {}
+        #: How often the inputs were made again (a cell's failure renews only the
+        #: inputs it was submitted with, not ones already made again after it).
+        self.generation = 0
 
     def _live(self, name: str, make: Callable[[], Any]) -> Any:
         future = self.futures.get(name)
@@ -243,9 +246,11 @@ class _SceneInputs:
             future = self.futures[name] = make()
         return future
 
-    def renew(self) -> None:
-        """Make every input again for the next cells (a cell failed without running)."""
-        self.futures.clear()
+    def renew(self, generation: int) -> None:
+        """Make every input again for the next cells, unless done since ``generation``."""
+        if generation == self.generation:
+            self.generation += 1
+            self.futures.clear()
 
     def mesh_future(self) -> Any:
         """Return the scattered mesh (on every worker)."""
@@ -291,7 +296,8 @@ class _DaskRunner(_Runner):
             self.client = Client(self.cluster)
         self.attempts: dict[str, int] = {}
         # In-flight futures: their cell, the host of an exclusive cell, the scene's inputs
-        self.futures: dict[Any, tuple[Cell, str | None, _SceneInputs]] = {}
+        # and their generation when the cell was submitted
+        self.futures: dict[Any, tuple[Cell, str | None, _SceneInputs, int]] = {}
         self.exclusive: deque[tuple[Cell, _SceneInputs]] = deque()
         self.busy: dict[str, bool] = {}
         self.done = as_completed()
@@ -323,7 +329,7 @@ class _DaskRunner(_Runner):
                                         inputs.structure_future(cell.builder),
                                         workers=[inputs.home[cell.builder]],
                                         allow_other_workers=True, pure=False)  # fmt: skip
-        self.futures[future] = (cell, host, inputs)
+        self.futures[future] = (cell, host, inputs, inputs.generation)
         self.done.add(future)
 
     def _feed_exclusive(self) -> None:
@@ -335,12 +341,12 @@ class _DaskRunner(_Runner):
 
     def _collect(self, future: Any, state: _State) -> None:
         """Record a finished future's cell, or submit it again."""
-        cell, host, inputs = self.futures.pop(future)
+        cell, host, inputs, generation = self.futures.pop(future)
         try:
             record = future.result()
         except Exception as exc:  # the worker died more often than Dask allows, or lost inputs
             record = _killed_record(cell, exc)
-            inputs.renew()
+            inputs.renew(generation)
         if host is not None:
             self.busy[host] = False
         if record["status"] != "ok" and self.attempts[cell.key] < MAX_ATTEMPTS:
