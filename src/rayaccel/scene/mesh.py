@@ -31,7 +31,6 @@ from rayaccel.validation import (
     check_coordinates,
     check_finite_rows,
     check_real,
-    reject_masked,
     rows_of_three,
 )
 
@@ -45,7 +44,6 @@ def _coerce_vertices(
     (:data:`rayaccel.validation.COORDINATE_LIMIT`); a float64 mesh's range lies within
     float32's, so its float32 rounding (what builders bound) is finite too.
     """
-    reject_masked("vertices", vertices)
     array = rows_of_three("vertices", vertices, "V", "float")
     check_real("vertices", array)
     check_finite_rows("vertices", array, "vertex", "vertices")
@@ -61,7 +59,6 @@ def _coerce_vertices(
 
 
 def _coerce_faces(faces: object, n_vertices: int) -> IntArray:
-    reject_masked("faces", faces)
     array = rows_of_three("faces", faces, "F", "int")
     if array.shape[0] == 0:
         raise InvalidInputError("faces: the mesh is empty (0 triangles)")

@@ -45,13 +45,14 @@ class TracePlan(NamedTuple):
 def _public_signature(trace: Callable[..., HitBatch], plan: Callable[..., TracePlan],
                       options: type) -> inspect.Signature:  # fmt: skip
     """Return ``trace``'s signature with the plan's first two parameters and the options type."""
-    public = list(inspect.signature(trace).parameters.values())
+    signature = inspect.signature(trace)
+    public = list(signature.parameters.values())
     structure, mesh = list(inspect.signature(plan).parameters.values())[:2]
     public[0] = structure.replace(kind=public[0].kind)
     public[1] = mesh.replace(kind=public[1].kind)
     public = [p.replace(annotation=f"{options.__name__} | None") if p.name == "options" else p
               for p in public]  # fmt: skip
-    return inspect.signature(trace).replace(parameters=public)
+    return signature.replace(parameters=public)
 
 
 def register_traversal(
