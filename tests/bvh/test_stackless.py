@@ -234,10 +234,42 @@ def test_options_are_validated():
 
 def test_perfect_hash_talk_vector():
     keys = np.array([1, 2, 3, 4, 5, 8, 9, 18, 19, 38, 39])
-    h = build_perfect_hash(keys, keys, n_table=11, n_disp=8)
+    h = build_perfect_hash(keys, keys, n_table=11, n_disp=8, scatter=False)
     assert h.disp.tolist() == [2, 0, 0, 0, 0, 0, 1, 5]
     assert h.table.tolist() == [39, 1, 2, 3, 4, 5, 38, 18, 19, 9, 8]
     assert np.array_equal(h.lookup(keys), keys)
+    scattered = build_perfect_hash(keys, keys, n_table=11, n_disp=8)
+    assert np.array_equal(scattered.lookup(keys), keys)
+    assert sorted(scattered.table.tolist()) == sorted(keys.tolist())  # still minimal
+
+
+def _tree_keys(n_leaves, seed):
+    """Inner-node keys (root 1, children 2k and 2k + 1) of a random tree split at 30-70%."""
+    rng = np.random.default_rng(seed)
+    keys, todo = [], [(1, n_leaves)]
+    while todo:
+        key, n = todo.pop()
+        if n < 2:
+            continue
+        keys.append(key)
+        left = min(max(int(rng.integers(int(0.3 * n), int(0.7 * n) + 1)), 1), n - 1)
+        todo += [(2 * key, left), (2 * key + 1, n - left)]
+    return np.array(keys, dtype=np.int64)
+
+
+def test_perfect_hash_of_tree_keys_scattered_search():
+    """Node keys are structured: searched from 0 their buckets crowd, scattered they fit.
+
+    On this tree the search from 0 needs a table 21% above minimal (and on a 120k-leaf
+    one, 60x the time); the scattered search stays within 10%.
+    """
+    keys = _tree_keys(20_000, 1)
+    values = np.arange(keys.size)
+    scattered = build_perfect_hash(keys, values)
+    from_zero = build_perfect_hash(keys, values, scatter=False)
+    for h in (scattered, from_zero):
+        assert np.array_equal(h.lookup(keys), values)
+    assert scattered.table.size <= 1.1 * keys.size < from_zero.table.size
 
 
 def test_perfect_hash_random_keys_and_errors():

@@ -10,17 +10,23 @@ Yao 1979, "Storing a Sparse Table" (CACM 22(11))::
 The displacement table ``D`` is filled greedily (Fox, Heath, Chen & Daoud 1992,
 "Practical Minimal Perfect Hash Functions for Large Databases", CACM 35(1)):
 bucket the keys by ``k mod |D|``, place the buckets in decreasing size (ties by
-bucket index), and give each the smallest displacement ``δ >= 0`` whose slots
-``(k mod |T| + δ) mod |T|`` are all distinct and free. Buckets of one key take the
-first free slot at or after ``k mod |T|`` (found with a union-find "next free slot"
-structure, so the tail of the construction stays near-linear). With ``|T| = n`` the
-hash is *minimal*: no empty slot and no stored keys (lookups only ever ask for
-existing keys). A bucket whose keys collide modulo ``|T|`` can never be placed; the
-table then grows by ``max(4, 5%)`` and the construction restarts.
+bucket index), and give each a displacement ``δ`` whose slots ``(k mod |T| + δ) mod
+|T|`` are all distinct and free. The candidates are the free slots for the bucket's
+first key (a union-find "next free slot" structure skips the taken ones), searched
+cyclically from a start scattered per bucket (``scatter``, the default) or from
+``δ = 0`` (the smallest displacement, as in the paper). Node keys are structured
+(the keys of one bucket are congruent modulo the power of two ``|D|``, and many
+buckets share the same key differences), so buckets searched from ``δ = 0`` pile up
+where earlier buckets of the same shape went and probe thousands of candidates each;
+a scattered start spreads them like random probing. With ``|T| = n`` the hash is
+*minimal*: no empty slot and no stored keys (lookups only ever ask for existing keys).
+When a bucket's keys collide modulo ``|T|`` (checked before any is placed) or a
+bucket finds no displacement, the table grows by ``max(4, 5%)`` and the construction
+restarts.
 
 Test vector (the talk): ``S = {1,2,3,4,5,8,9,18,19,38,39}``, ``|T| = 11``,
-``|D| = 8`` gives ``D = [2,0,0,0,0,0,1,5]`` and ``T = [39,1,2,3,4,5,38,18,19,9,8]``
-(values equal to keys).
+``|D| = 8``, searched from ``δ = 0``, gives ``D = [2,0,0,0,0,0,1,5]`` and
+``T = [39,1,2,3,4,5,38,18,19,9,8]`` (values equal to keys).
 """
 
 from __future__ import annotations
@@ -35,6 +41,9 @@ from rayaccel.errors import InvalidInputError
 
 #: Bytes per table and displacement entry (int32).
 ENTRY_BYTES = 4
+#: Knuth's multiplicative hash constant: bucket ``b`` starts its search ``b · _SCATTER``
+#: slots beyond its first key's base (mod ``|T|``).
+_SCATTER = 2654435761
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -78,7 +87,16 @@ def _find_free(next_free, slot):
 
 
 @cpu_kernel()
-def _place(keys, values, n_table, n_disp, table, disp):
+def _next_free_slot(next_free, slot, n_table):
+    """Return the first free slot at or after ``slot``, cyclically (-1: the table is full)."""
+    found = _find_free(next_free, slot)
+    if found == n_table:
+        found = _find_free(next_free, np.int64(0))
+    return found if found < n_table else -1
+
+
+@cpu_kernel()
+def _place(keys, values, n_table, n_disp, table, disp, scatter):
     """Greedy displacement search; return True when every bucket was placed."""
     n = keys.shape[0]
     # Bucket the keys by k mod |D| (CSR layout).
@@ -94,6 +112,15 @@ def _place(keys, values, n_table, n_disp, table, disp):
         b = keys[i] % n_disp
         member[fill[b]] = i
         fill[b] += 1
+    # Two keys of one bucket that collide modulo |T| can never be separated: checked for
+    # every bucket before any is placed, so a table that must grow fails at once.
+    base = np.empty(max(int(size.max()) if n_disp > 0 else 1, 1), dtype=np.int64)
+    for b in range(n_disp):
+        for j in range(size[b]):
+            base[j] = keys[member[start[b] + j]] % n_table
+            for jj in range(j):
+                if base[jj] == base[j]:
+                    return False
     # Largest buckets first ("decreasing number of dependencies"); stable: ties by index.
     order = np.argsort(-size, kind="mergesort")
     occupied = np.zeros(n_table, dtype=np.bool_)
@@ -101,36 +128,33 @@ def _place(keys, values, n_table, n_disp, table, disp):
     next_free = np.arange(n_table + 1, dtype=np.int64)
     table[:] = -1
     disp[:] = 0
-    base = np.empty(max(int(size.max()) if n_disp > 0 else 1, 1), dtype=np.int64)
     for b in order:
         m = size[b]
         if m == 0:
             break
         for j in range(m):
             base[j] = keys[member[start[b] + j]] % n_table
-        # Two keys of one bucket that collide modulo |T| can never be separated.
-        for j in range(m):
-            for jj in range(j + 1, m):
-                if base[j] == base[jj]:
-                    return False
+        # A displacement that fits puts the bucket's first key on a free slot, so the
+        # candidates are the free slots from ``base[0] + shift`` on, cyclically.
+        shift = (b * _SCATTER) % n_table if scatter else 0
         delta = -1
-        if m == 1:
-            # One key: the first free slot at or after its base, cyclically.
-            slot = _find_free(next_free, base[0])
-            if slot == n_table:
-                slot = _find_free(next_free, np.int64(0))
-            if slot < n_table:
-                delta = (slot - base[0]) % n_table
-        else:
-            for d in range(n_table):
-                ok = True
-                for j in range(m):
-                    if occupied[(base[j] + d) % n_table]:
-                        ok = False
-                        break
-                if ok:
-                    delta = d
+        slot = _next_free_slot(next_free, (base[0] + shift) % n_table, n_table)
+        searched = -1
+        while slot >= 0:
+            distance = (slot - base[0] - shift) % n_table
+            if distance <= searched:  # wrapped around: no displacement fits
+                break
+            searched = distance
+            d = (slot - base[0]) % n_table
+            ok = True
+            for j in range(1, m):
+                if occupied[(base[j] + d) % n_table]:
+                    ok = False
                     break
+            if ok:
+                delta = d
+                break
+            slot = _next_free_slot(next_free, (slot + 1) % n_table, n_table)
         if delta < 0:
             return False
         disp[b] = delta
@@ -153,6 +177,8 @@ def build_perfect_hash(
     values: np.ndarray,
     n_table: int | None = None,
     n_disp: int | None = None,
+    *,
+    scatter: bool = True,
 ) -> PerfectHash:
     """Build a perfect hash from distinct non-negative int64 ``keys`` to int32 ``values``.
 
@@ -166,6 +192,9 @@ def build_perfect_hash(
         ``|T|``; default ``n`` (minimal). Grown by ``max(4, 5%)`` until every bucket fits.
     n_disp : int, optional
         ``|D|``; default the largest power of two ``<= (n - 1) / 2``.
+    scatter : bool
+        Search each bucket's displacement from a start scattered per bucket (default),
+        or from 0 (the smallest displacement that fits, the paper's rule).
 
     Returns
     -------
@@ -185,6 +214,6 @@ def build_perfect_hash(
     while True:
         table = np.empty(size, dtype=INDEX)
         disp = np.empty(n_d, dtype=INDEX)
-        if _place(keys, values, size, n_d, table, disp):
+        if _place(keys, values, size, n_d, table, disp, scatter):
             return PerfectHash(table, disp)
         size += max(4, size // 20)
