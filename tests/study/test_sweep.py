@@ -15,7 +15,7 @@ import pytest
 
 from rayaccel.scene import catalog
 from rayaccel.study import cells as cells_mod
-from rayaccel.study.cells import enumerate_cells
+from rayaccel.study.cells import enumerate_cells, homes
 from rayaccel.study.config import ConfigError, parse_config
 from rayaccel.study.raysets import scene_raysets
 from rayaccel.study.results import ResultsFile, ResultsFormatError, read_results
@@ -233,6 +233,16 @@ def test_a_failing_cell_is_tried_three_times_then_recorded(finished, tmp_path, m
     monkeypatch.undo()
     again = sweep(config, out, rays_folder=results.with_suffix(".rays"))
     assert again.ran == 0  # given up for good
+
+
+def test_structure_homes_turn_from_scene_to_scene():
+    """The heaviest group alone on one worker, the rest on the other; the next scene swaps."""
+    groups = {"bvh2.binned_sah": 28, "kdtree.sah": 20, "grid.uniform": 12}
+    first = homes(groups, 2, 0)
+    assert first == {"bvh2.binned_sah": 0, "kdtree.sah": 1, "grid.uniform": 1}
+    assert homes(groups, 2, 1) == {b: 1 - w for b, w in first.items()}
+    assert homes(groups, 2, 2) == first
+    assert set(homes(groups, 1, 5).values()) == {0}
 
 
 def test_a_counter_cell_uses_the_structure_it_is_handed(finished, monkeypatch):

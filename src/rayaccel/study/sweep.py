@@ -17,9 +17,10 @@ its next cells. Build and timing cells run one at a time per machine: the client
 keeps at most one of them in flight per host, restricted to that host, so two
 timings never share a machine; counter cells fill the workers. Each structure of
 a scene's counter cells is built once, by a task of its own (one thread) on its
-home worker (structures spread over the workers by their cell counts); its cells
-prefer that worker, and a cell that Dask moves to another worker takes a copy of
-the structure with it rather than building it again. A
+home worker (structures spread over the workers by their cell counts, turned by one
+worker from scene to scene so that one builder's structures are not all built on
+one worker); its cells prefer that worker, and a cell that Dask moves to another
+worker takes a copy of the structure with it rather than building it again. A
 worker that dies has its cell re-run by Dask (up to its ``allowed-failures``), and
 then by the sweep, up to :data:`MAX_ATTEMPTS` times in all; a mesh or ray set that
 died with it (scattered data cannot be recomputed) is scattered again first. The single writer is
@@ -41,10 +42,10 @@ from rayaccel.scene import catalog
 from rayaccel.study.cells import (
     Cell,
     Record,
-    balance,
     cells_by_scene,
     counter_structure,
     enumerate_cells,
+    homes,
     run_cell,
 )
 from rayaccel.study.config import SweepConfig, load_config
@@ -301,6 +302,8 @@ class _DaskRunner(_Runner):
         self.exclusive: deque[tuple[Cell, _SceneInputs]] = deque()
         self.busy: dict[str, bool] = {}
         self.done = as_completed()
+        #: Scenes run so far, which turns the structures' homes (:func:`homes`).
+        self.turn = 0
 
     def close(self) -> None:
         self.client.close()
@@ -376,15 +379,17 @@ class _DaskRunner(_Runner):
         for host in by_host:
             self.busy.setdefault(host, False)
         # Each structure of the counter cells is built once, by a task on its home worker
-        # (structures spread over the workers by their cell counts), ahead of the cells
-        # already waiting there (priority); its cells go preferably to that worker, and
-        # take the structure from the build wherever they run.
+        # (structures spread over the workers by their cell counts, turned by one worker
+        # from scene to scene), ahead of the cells already waiting there (priority); its
+        # cells go preferably to that worker, and take the structure from the build
+        # wherever they run.
         addresses = [a for host in by_host for a in by_host[host]]
         groups: dict[str, int] = {}
         for cell in cells:
             if not cell.exclusive:
                 groups[cell.builder] = groups.get(cell.builder, 0) + 1
-        home = {b: addresses[i] for b, i in balance(groups, len(addresses)).items()}
+        turn, self.turn = self.turn, self.turn + 1
+        home = {b: addresses[i] for b, i in homes(groups, len(addresses), turn).items()}
         inputs = _SceneInputs(client, config, mesh, raysets, home)
         inputs.mesh_future()
         for name in raysets:
