@@ -33,7 +33,13 @@ from rayaccel._variant import register
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
 from rayaccel.grid.builders.skip import add_skip
-from rayaccel.grid.builders.uniform import PRIM_CHUNK, UniformGridOptions, build_uniform, sort_pairs
+from rayaccel.grid.builders.uniform import (
+    MASK_BITS,
+    PRIM_CHUNK,
+    UniformGridOptions,
+    build_uniform,
+    sort_pairs,
+)
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import MAX_RES_AXIS, SKIP_DISTANCE, cell_margin
 from rayaccel.kernels.overlap import triangle_box_overlap
@@ -107,13 +113,16 @@ MAX_SHRINK_ROUNDS = 64
 @cpu_kernel(parallel=True)
 def _leaf_pairs(
     tri, top_of_ref, top_prim, lo, size, res, sub_res, leaf_first, leaf_size, margin,
-    counts, offsets, keys, values, mode,
+    counts, masks, offsets, keys, values, mode,
 ):  # fmt: skip
     """Count, write or bound the leaf cells each top reference overlaps.
 
-    ``mode`` COUNT: exact counts into ``counts``; FILL: pairs written from ``offsets``,
-    with no test when the count says every candidate leaf overlaps; BOUND: the number
-    of candidate leaves (the triangle's box in leaf cells) into ``counts``, no test.
+    ``mode`` COUNT: exact counts into ``counts`` and, for a reference with at most
+    ``MASK_BITS`` candidate leaves, which of them it overlaps into ``masks`` (as the
+    uniform grid's pair pass does); FILL: pairs written from
+    ``offsets``, from the mask, or with no test when the count says every candidate leaf
+    overlaps, else tested again; BOUND: the number of candidate leaves (the triangle's
+    box in leaf cells) into ``counts``, no test.
     """
     fill = mode == FILL
     n = top_prim.shape[0]
@@ -162,7 +171,10 @@ def _leaf_pairs(
             if mode == BOUND:
                 counts[i] = n_cand
                 continue
+            masked = n_cand <= MASK_BITS
             every = fill and counts[i] == n_cand
+            bits = masks[i] if fill and masked else np.int64(0)
+            k = 0
             for z in range(first[2], last[2] + 1):
                 b_lo[2] = top_lo[2] + np.float32(z) * leaf_size[c, 2] - margin[c, 2]
                 b_hi[2] = top_lo[2] + np.float32(z + 1) * leaf_size[c, 2] + margin[c, 2]
@@ -170,15 +182,28 @@ def _leaf_pairs(
                     b_lo[1] = top_lo[1] + np.float32(y) * leaf_size[c, 1] - margin[c, 1]
                     b_hi[1] = top_lo[1] + np.float32(y + 1) * leaf_size[c, 1] + margin[c, 1]
                     for x in range(first[0], last[0] + 1):
-                        b_lo[0] = top_lo[0] + np.float32(x) * leaf_size[c, 0] - margin[c, 0]
-                        b_hi[0] = top_lo[0] + np.float32(x + 1) * leaf_size[c, 0] + margin[c, 0]
-                        if every or triangle_box_overlap(tri, p, b_lo, b_hi):
+                        if fill and masked:
+                            hit = (bits >> k) & 1 == 1
+                        elif every:
+                            hit = True
+                        else:
+                            b_lo[0] = top_lo[0] + np.float32(x) * leaf_size[c, 0]
+                            b_lo[0] -= margin[c, 0]
+                            b_hi[0] = top_lo[0] + np.float32(x + 1) * leaf_size[c, 0]
+                            b_hi[0] += margin[c, 0]
+                            hit = triangle_box_overlap(tri, p, b_lo, b_hi)
+                            if masked and hit:
+                                bits |= np.int64(1) << k
+                        if hit:
                             if fill:
                                 keys[slot] = leaf_first[c] + x + lrx * (y + lry * z)
                                 values[slot] = p
                             slot += 1
+                        k += 1
             if not fill:
                 counts[i] = slot
+                if masked:
+                    masks[i] = bits
 
 
 def _leaf_geometry(top: Any, size: np.ndarray, sub_res: np.ndarray) -> tuple[Any, Any]:
@@ -273,12 +298,13 @@ def leaf_level(
     top_of_ref = np.repeat(np.arange(n_top, dtype=np.int64), counts)
     n_ref = top.n_refs
     offsets = np.empty(n_ref, dtype=np.int64)
+    no_masks = np.empty(0, dtype=np.int64)
     budget = min(opts.max_refs, max(n_ref, int(opts.max_refs_per_prim * top.n_prims)))
     for _ in range(MAX_SHRINK_ROUNDS):
         leaf_size, margin = _leaf_geometry(top, size, sub_res)
         args = (tri, top_of_ref, top.prim_index, top.lo, size, top.res, sub_res,
                 np.zeros(n_top + 1, INDEX), leaf_size, margin, offsets)  # fmt: skip
-        _leaf_pairs(*args, offsets, np.empty(0, np.int64), np.empty(0, np.int32), BOUND)
+        _leaf_pairs(*args, no_masks, offsets, np.empty(0, np.int64), np.empty(0, np.int32), BOUND)
         shrink = _cells_to_coarsen(top_of_ref, offsets, counts, sub_res, budget, opts)
         if shrink is None:
             break
@@ -297,7 +323,8 @@ def leaf_level(
     t1 = time.perf_counter()
     args = (tri, top_of_ref, top.prim_index, top.lo, size, top.res, sub_res, leaf_first,
             leaf_size, margin, offsets)  # fmt: skip
-    _leaf_pairs(*args, offsets, np.empty(0, np.int64), np.empty(0, np.int32), COUNT)
+    masks = np.empty(n_ref, dtype=np.int64)
+    _leaf_pairs(*args, masks, offsets, np.empty(0, np.int64), np.empty(0, np.int32), COUNT)
     total = np.cumsum(offsets)
     n_pairs = int(total[-1]) if n_ref else 0
     if n_pairs > 2**31 - 1:
@@ -308,7 +335,7 @@ def leaf_level(
         starts[1:] = total[:-1]
     keys = np.empty(n_pairs, dtype=np.int64)
     values = np.empty(n_pairs, dtype=np.int32)
-    _leaf_pairs(*args, starts, keys, values, FILL)
+    _leaf_pairs(*args, masks, starts, keys, values, FILL)
     phases["leaf_pairs"] = (time.perf_counter() - t1) * 1e3
     leaf_start, values = sort_pairs(keys, values, n_leaves, phases, "leaf_")
     return LeafLevel(

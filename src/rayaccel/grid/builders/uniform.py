@@ -199,12 +199,20 @@ def _prim_boxes(tri, lo, inv, margin, res, first, last):
     return total
 
 
+#: Candidate cells up to which the count pass keeps its overlap results as bits, so the
+#: fill pass writes the pairs without testing again.
+MASK_BITS = 64
+
+
 @cpu_kernel(parallel=True)
-def _pairs(tri, lo, size, margin, res, first, last, counts, offsets, keys, values, fill):
+def _pairs(tri, lo, size, margin, res, first, last, counts, masks, offsets, keys, values, fill):
     """Count or write the cells each triangle overlaps.
 
-    ``fill`` False: counts into ``counts[p]``; True: pairs written from ``offsets[p]``,
-    with no test when the count says every candidate cell overlaps.
+    ``fill`` False: counts into ``counts[p]`` and, for a triangle with at most
+    :data:`MASK_BITS` candidate cells, which of them it overlaps into ``masks[p]``
+    (bit ``k`` for the ``k``-th candidate, x fastest); True: pairs written from
+    ``offsets[p]``, from the mask, or with no test when the count says every candidate
+    cell overlaps, else tested again.
     """
     n = tri.shape[0]
     n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
@@ -229,7 +237,11 @@ def _pairs(tri, lo, size, margin, res, first, last, counts, offsets, keys, value
                 else:
                     counts[p] = 1
                 continue
-            every = fill and counts[p] == (x1 - x0 + 1) * (y1 - y0 + 1) * (z1 - z0 + 1)
+            n_cand = (x1 - x0 + 1) * (y1 - y0 + 1) * (z1 - z0 + 1)
+            masked = n_cand <= MASK_BITS
+            every = fill and counts[p] == n_cand
+            bits = masks[p] if fill and masked else np.int64(0)
+            k = 0
             for z in range(z0, z1 + 1):
                 b_lo[2] = lo[2] + np.float32(z) * size[2] - margin[2]
                 b_hi[2] = lo[2] + np.float32(z + 1) * size[2] + margin[2]
@@ -237,15 +249,26 @@ def _pairs(tri, lo, size, margin, res, first, last, counts, offsets, keys, value
                     b_lo[1] = lo[1] + np.float32(y) * size[1] - margin[1]
                     b_hi[1] = lo[1] + np.float32(y + 1) * size[1] + margin[1]
                     for x in range(x0, x1 + 1):
-                        b_lo[0] = lo[0] + np.float32(x) * size[0] - margin[0]
-                        b_hi[0] = lo[0] + np.float32(x + 1) * size[0] + margin[0]
-                        if every or triangle_box_overlap(tri, p, b_lo, b_hi):
+                        if fill and masked:
+                            hit = (bits >> k) & 1 == 1
+                        elif every:
+                            hit = True
+                        else:
+                            b_lo[0] = lo[0] + np.float32(x) * size[0] - margin[0]
+                            b_hi[0] = lo[0] + np.float32(x + 1) * size[0] + margin[0]
+                            hit = triangle_box_overlap(tri, p, b_lo, b_hi)
+                            if masked and hit:
+                                bits |= np.int64(1) << k
+                        if hit:
                             if fill:
                                 keys[slot] = x + rx * (y + ry * np.int64(z))
                                 values[slot] = p
                             slot += 1
+                        k += 1
             if not fill:
                 counts[p] = slot
+                if masked:
+                    masks[p] = bits
 
 
 @cpu_kernel(parallel=True)
@@ -327,9 +350,11 @@ def build_uniform(
     phases["bounds"] = (time.perf_counter() - t0) * 1e3
     t1 = time.perf_counter()
     counts = np.empty(n, dtype=np.int64)
+    masks = np.empty(n, dtype=np.int64)
     dummy_k = np.empty(0, dtype=np.int64)
     dummy_v = np.empty(0, dtype=np.int32)
-    _pairs(tri, lo, size, margin, res, first, last, counts, counts, dummy_k, dummy_v, False)
+    _pairs(tri, lo, size, margin, res, first, last, counts, masks, counts, dummy_k, dummy_v,
+           False)  # fmt: skip
     phases["count"] = (time.perf_counter() - t1) * 1e3
     t1 = time.perf_counter()
     offsets = np.empty(n, dtype=np.int64)
@@ -338,7 +363,7 @@ def build_uniform(
     n_refs = int(offsets[-1] + counts[-1])
     keys = np.empty(n_refs, dtype=np.int64)
     values = np.empty(n_refs, dtype=np.int32)
-    _pairs(tri, lo, size, margin, res, first, last, counts, offsets, keys, values, True)
+    _pairs(tri, lo, size, margin, res, first, last, counts, masks, offsets, keys, values, True)
     phases["fill"] = (time.perf_counter() - t1) * 1e3
     cell_start, values = sort_pairs(keys, values, n_cells, phases, "")
     grid = UniformGrid(
