@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 import rayaccel
 import reference
@@ -270,6 +272,20 @@ def test_perfect_hash_of_tree_keys_scattered_search():
     for h in (scattered, from_zero):
         assert np.array_equal(h.lookup(keys), values)
     assert scattered.table.size <= 1.1 * keys.size < from_zero.table.size
+
+
+@given(
+    keys=st.sets(st.integers(0, 2**62), min_size=1, max_size=300)
+    | st.builds(lambda n, step, start: {start + step * i for i in range(n)},
+                st.integers(1, 300), st.integers(1, 2**20), st.integers(0, 2**40)),
+    scatter=st.booleans(),
+)  # fmt: skip
+def test_perfect_hash_answers_every_key(keys, scatter):
+    """Any distinct keys (random or evenly spaced), either search: every lookup is right."""
+    keys = np.array(sorted(keys), dtype=np.int64)
+    h = build_perfect_hash(keys, np.arange(keys.size), scatter=scatter)
+    assert np.array_equal(h.lookup(keys), np.arange(keys.size))
+    assert (h.table >= 0).sum() == keys.size
 
 
 def test_perfect_hash_random_keys_and_errors():
