@@ -119,10 +119,10 @@ def _leaf_pairs(
 
     ``mode`` COUNT: exact counts into ``counts`` and, for a reference with at most
     ``MASK_BITS`` candidate leaves, which of them it overlaps into ``masks`` (as the
-    uniform grid's pair pass does); FILL: pairs written from
-    ``offsets``, from the mask, or with no test when the count says every candidate leaf
-    overlaps, else tested again; BOUND: the number of candidate leaves (the triangle's
-    box in leaf cells) into ``counts``, no test.
+    uniform grid's pair pass does); FILL: pairs written from ``offsets``, from the
+    mask, or with no test when the count says every candidate leaf overlaps, else
+    tested again; BOUND: the number of candidate leaves (the triangle's box in leaf
+    cells) into ``counts``, no test.
     """
     fill = mode == FILL
     n = top_prim.shape[0]
