@@ -23,8 +23,8 @@ one worker); its cells prefer that worker, and a cell that Dask moves to another
 worker takes a copy of the structure with it rather than building it again. A
 worker that dies has its cell re-run by Dask (up to its ``allowed-failures``), and
 then by the sweep, up to :data:`MAX_ATTEMPTS` times in all; a mesh or ray set that
-died with it (scattered data cannot be recomputed) is scattered again first. The single writer is
-this process.
+died with it (scattered data cannot be recomputed) is scattered again first. The
+single writer is this process.
 """
 
 from __future__ import annotations
