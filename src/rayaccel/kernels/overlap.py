@@ -10,6 +10,13 @@ try 13 axes:
    box's projection radius is ``h · |n|``);
 3. the nine cross products ``u_i × e_j`` of a box axis and a triangle edge.
 
+Fewer suffice when the triangle's extent along some box axis ``a`` lies within the
+box's: the triangle then meets the box exactly when its projection along ``a`` meets
+the box's face rectangle, a 2D test on the two other face axes and the three axes
+``a × e_j``; with two such axes the third axis's interval test decides. Grid cells
+are small against most triangles' extents on at most one axis, so most of their
+tests end after the face axes or three edge axes.
+
 Grids use it to list the cells a triangle really touches rather than every cell of
 its bounding box (cell/primitive pairs), as do kd-tree and octree builders.
 
@@ -78,12 +85,22 @@ def separating_axes_py(tri, prim, lo, hi, plane_axis):
     v2y = tri[prim, 2, 1] - cy
     v2z = tri[prim, 2, 2] - cz
     # Axes 1-3: the box face normals, i.e. the triangle's bounds against the box.
-    if min(v0x, v1x, v2x) > hx or max(v0x, v1x, v2x) < -hx:
+    x_lo = min(v0x, v1x, v2x)
+    x_hi = max(v0x, v1x, v2x)
+    y_lo = min(v0y, v1y, v2y)
+    y_hi = max(v0y, v1y, v2y)
+    z_lo = min(v0z, v1z, v2z)
+    z_hi = max(v0z, v1z, v2z)
+    if x_lo > hx or x_hi < -hx or y_lo > hy or y_hi < -hy or z_lo > hz or z_hi < -hz:
         return False
-    if min(v0y, v1y, v2y) > hy or max(v0y, v1y, v2y) < -hy:
-        return False
-    if min(v0z, v1z, v2z) > hz or max(v0z, v1z, v2z) < -hz:
-        return False
+    # Axes the triangle's bounds lie within: a test in fewer dimensions decides.
+    x_in = x_lo >= -hx and x_hi <= hx
+    y_in = y_lo >= -hy and y_hi <= hy
+    z_in = z_lo >= -hz and z_hi <= hz
+    n_in = np.int64(x_in) + np.int64(y_in) + np.int64(z_in)
+    if n_in >= 2:
+        return True
+    all_axes = n_in == 0
     # Axes 4-12: box axis × triangle edge, for the edges e0 = v1-v0, e1 = v2-v1, e2 = v0-v2.
     for e in range(3):
         if e == 0:
@@ -100,17 +117,17 @@ def separating_axes_py(tri, prim, lo, hi, plane_axis):
             ez = v0z - v2z
         # x × e = (0, -ez, ey)
         r = hy * abs(ez) + hz * abs(ey)
-        if edge_axis_separates(ey, ez, v0y, v0z, v1y, v1z, v2y, v2z, r):
+        if (all_axes or x_in) and edge_axis_separates(ey, ez, v0y, v0z, v1y, v1z, v2y, v2z, r):
             return False
         # y × e = (ez, 0, -ex)
         r = hx * abs(ez) + hz * abs(ex)
-        if edge_axis_separates(ez, ex, v0z, v0x, v1z, v1x, v2z, v2x, r):
+        if (all_axes or y_in) and edge_axis_separates(ez, ex, v0z, v0x, v1z, v1x, v2z, v2x, r):
             return False
         # z × e = (-ey, ex, 0)
         r = hx * abs(ey) + hy * abs(ex)
-        if edge_axis_separates(ex, ey, v0x, v0y, v1x, v1y, v2x, v2y, r):
+        if (all_axes or z_in) and edge_axis_separates(ex, ey, v0x, v0y, v1x, v1y, v2x, v2y, r):
             return False
-    if not plane_axis:
+    if not plane_axis or not all_axes:
         return True
     # Axis 13: the triangle's normal; the plane n·x = n·v0 against the box's radius.
     e0x = v1x - v0x

@@ -8,7 +8,7 @@ parameters of the authors' released implementation (hagrid), ALGORITHMS §7.5:
    sub-resolution λ2 (``leaf_density``, 2.4) asks for from its reference count,
    rounded up (at most ``max_depth``). The largest ``d`` is the ``shift`` of a virtual
    fine grid of ``top_res << shift`` voxels, in which every leaf is a box of whole
-   voxels. The leaves are binned with the two-level grid's one sort
+   voxels. The leaves are binned as the two-level grid's are
    (:func:`~rayaccel.grid.builders.two_level.leaf_level`); hagrid subdivides level by
    level like an octree, which ends in the same leaves.
 3. Merge rounds (:func:`merge_candidates`, :func:`merge_pass` along x, then y,

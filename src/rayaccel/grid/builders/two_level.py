@@ -10,10 +10,13 @@
    (:func:`~rayaccel.grid.builders.uniform.grid_resolution`); an empty top cell gets
    one empty leaf. A prefix sum of the sub-grid sizes gives each top cell its first
    leaf cell.
-3. *One sort for the whole leaf level*: every (top cell, primitive) pair of the top
-   level emits a pair (global leaf cell, primitive) for each leaf cell of that top
-   cell it overlaps (counted, prefix-summed, filled, exact test), and a single radix
-   sort over all of them yields every leaf's range.
+3. *The whole leaf level at once*: every (top cell, primitive) pair of the top level
+   adds the primitive to each leaf cell of that top cell it overlaps (exact test). The
+   paper emits (global leaf cell, primitive) pairs and sorts them all; since a leaf
+   belongs to one top cell, a count per leaf, one prefix sum over all leaves and a
+   fill, each top cell's references walked by one thread, give the same ranges
+   without the sort (primitives stay in increasing order within a leaf, as a stable
+   sort leaves them).
 
 ``skip="distance"`` adds a chessboard distance field over the *top* cells, the thesis's
 own proposal (empty-space skipping on the two-level grid), read by ``grid.skip``.
@@ -38,7 +41,6 @@ from rayaccel.grid.builders.uniform import (
     PRIM_CHUNK,
     UniformGridOptions,
     build_uniform,
-    sort_pairs,
 )
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import MAX_RES_AXIS, SKIP_DISTANCE, cell_margin
@@ -102,7 +104,7 @@ def sub_resolutions(size: np.ndarray, counts: np.ndarray, density: float) -> np.
     return out.astype(INDEX)
 
 
-#: ``_leaf_pairs`` modes: count overlapped leaves, write the pairs, or bound the count.
+#: ``_leaf_refs`` modes: count overlapped leaves, write the references, or bound the count.
 COUNT = 0
 FILL = 1
 BOUND = 2
@@ -111,99 +113,116 @@ MAX_SHRINK_ROUNDS = 64
 
 
 @cpu_kernel(parallel=True)
-def _leaf_pairs(
-    tri, top_of_ref, top_prim, lo, size, res, sub_res, leaf_first, leaf_size, margin,
-    counts, masks, offsets, keys, values, mode,
+def _leaf_refs(
+    tri, cell_start, top_prim, chunk_cells, lo, size, res, sub_res, leaf_first, leaf_size,
+    margin, span, counts, masks, cursor, values, mode,
 ):  # fmt: skip
-    """Count, write or bound the leaf cells each top reference overlaps.
+    """Bound, count or write the leaf cells each top reference overlaps.
 
-    ``mode`` COUNT: exact counts into ``counts`` and, for a reference with at most
-    ``MASK_BITS`` candidate leaves, which of them it overlaps into ``masks`` (as the
-    uniform grid's pair pass does); FILL: pairs written from ``offsets``, from the
-    mask, or with no test when the count says every candidate leaf overlaps, else
-    tested again; BOUND: the number of candidate leaves (the triangle's box in leaf
-    cells) into ``counts``, no test.
+    Work goes by top cell, chunk ``k`` taking the cells ``chunk_cells[k]`` to
+    ``chunk_cells[k + 1]``; a leaf belongs to one top cell, so no two chunks touch the
+    same leaf counter. ``mode`` BOUND: each reference's candidate leaves (its
+    triangle's box in leaf cells, widened by twice the margin) into ``span`` (first
+    and last per axis) and their number into ``counts``, ``-1`` for a triangle
+    strictly inside one leaf, which needs no test. COUNT: each reference's exact count
+    into ``counts`` and, with at most ``MASK_BITS`` candidate leaves, which of them it
+    overlaps into ``masks`` (as the uniform grid's pair pass does); each overlapped
+    leaf's counter ``cursor[leaf + 1]`` goes up by one. FILL: ``cursor[leaf]`` is the
+    leaf's next free slot in ``values``; the overlaps come from the mask, or need no
+    test when the count says every candidate leaf overlaps, else are tested again.
     """
     fill = mode == FILL
-    n = top_prim.shape[0]
-    n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
     rx = res[0]
     ry = res[1]
-    for ch in prange(n_chunks):
+    for ch in prange(chunk_cells.shape[0] - 1):
         b_lo = np.empty(3, dtype=np.float32)
         b_hi = np.empty(3, dtype=np.float32)
-        first = np.empty(3, dtype=np.int64)
-        last = np.empty(3, dtype=np.int64)
         top_lo = np.empty(3, dtype=np.float32)
-        for i in range(ch * PRIM_CHUNK, min(n, (ch + 1) * PRIM_CHUNK)):
-            c = top_of_ref[i]
-            p = top_prim[i]
-            cx = c % rx
-            cy = (c // rx) % ry
-            cz = c // (rx * ry)
-            top_lo[0] = lo[0] + np.float32(cx) * size[0]
-            top_lo[1] = lo[1] + np.float32(cy) * size[1]
-            top_lo[2] = lo[2] + np.float32(cz) * size[2]
-            single = True
-            for a in range(3):
-                t_lo = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
-                t_hi = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
-                inv = 1.0 / np.float64(leaf_size[c, a])
-                m2 = 2.0 * np.float64(margin[c, a])
-                j0 = np.int64(np.floor((np.float64(t_lo) - m2 - top_lo[a]) * inv))
-                j1 = np.int64(np.floor((np.float64(t_hi) + m2 - top_lo[a]) * inv))
-                r = np.int64(sub_res[c, a])
-                first[a] = min(max(j0, 0), r - 1)
-                last[a] = min(max(j1, 0), r - 1)
-                if first[a] != last[a] or j0 < 0 or j1 >= r:
-                    single = False
+        for c in range(chunk_cells[ch], chunk_cells[ch + 1]):
+            top_lo[0] = lo[0] + np.float32(c % rx) * size[0]
+            top_lo[1] = lo[1] + np.float32((c // rx) % ry) * size[1]
+            top_lo[2] = lo[2] + np.float32(c // (rx * ry)) * size[2]
             lrx = np.int64(sub_res[c, 0])
             lry = np.int64(sub_res[c, 1])
-            slot = offsets[i] if fill else 0
-            if single:
-                if fill:
-                    keys[slot] = leaf_first[c] + first[0] + lrx * (first[1] + lry * first[2])
-                    values[slot] = p
-                else:
+            base = np.int64(leaf_first[c])
+            for i in range(cell_start[c], cell_start[c + 1]):
+                p = top_prim[i]
+                if mode == BOUND:
+                    single = True
+                    n_cand = np.int64(1)
+                    for a in range(3):
+                        t_lo = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+                        t_hi = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+                        inv = 1.0 / np.float64(leaf_size[c, a])
+                        m2 = 2.0 * np.float64(margin[c, a])
+                        j0 = np.int64(np.floor((np.float64(t_lo) - m2 - top_lo[a]) * inv))
+                        j1 = np.int64(np.floor((np.float64(t_hi) + m2 - top_lo[a]) * inv))
+                        r = np.int64(sub_res[c, a])
+                        first = min(max(j0, 0), r - 1)
+                        last = min(max(j1, 0), r - 1)
+                        span[i, a] = first
+                        span[i, 3 + a] = last
+                        n_cand *= last - first + 1
+                        if first != last or j0 < 0 or j1 >= r:
+                            single = False
+                    counts[i] = -1 if single else n_cand
+                    continue
+                x0 = np.int64(span[i, 0])
+                y0 = np.int64(span[i, 1])
+                z0 = np.int64(span[i, 2])
+                x1 = np.int64(span[i, 3])
+                y1 = np.int64(span[i, 4])
+                z1 = np.int64(span[i, 5])
+                if not fill and counts[i] == -1:
+                    cursor[base + x0 + lrx * (y0 + lry * z0) + 1] += 1
                     counts[i] = 1
-                continue
-            n_cand = (last[0] - first[0] + 1) * (last[1] - first[1] + 1) * (last[2] - first[2] + 1)
-            if mode == BOUND:
-                counts[i] = n_cand
-                continue
-            masked = n_cand <= MASK_BITS
-            every = fill and counts[i] == n_cand
-            bits = masks[i] if fill and masked else np.int64(0)
-            k = 0
-            for z in range(first[2], last[2] + 1):
-                b_lo[2] = top_lo[2] + np.float32(z) * leaf_size[c, 2] - margin[c, 2]
-                b_hi[2] = top_lo[2] + np.float32(z + 1) * leaf_size[c, 2] + margin[c, 2]
-                for y in range(first[1], last[1] + 1):
-                    b_lo[1] = top_lo[1] + np.float32(y) * leaf_size[c, 1] - margin[c, 1]
-                    b_hi[1] = top_lo[1] + np.float32(y + 1) * leaf_size[c, 1] + margin[c, 1]
-                    for x in range(first[0], last[0] + 1):
-                        if fill and masked:
-                            hit = (bits >> k) & 1 == 1
-                        elif every:
-                            hit = True
-                        else:
-                            b_lo[0] = top_lo[0] + np.float32(x) * leaf_size[c, 0]
-                            b_lo[0] -= margin[c, 0]
-                            b_hi[0] = top_lo[0] + np.float32(x + 1) * leaf_size[c, 0]
-                            b_hi[0] += margin[c, 0]
-                            hit = triangle_box_overlap(tri, p, b_lo, b_hi)
-                            if masked and hit:
-                                bits |= np.int64(1) << k
-                        if hit:
-                            if fill:
-                                keys[slot] = leaf_first[c] + x + lrx * (y + lry * z)
-                                values[slot] = p
-                            slot += 1
-                        k += 1
-            if not fill:
-                counts[i] = slot
-                if masked:
-                    masks[i] = bits
+                    masks[i] = 1
+                    continue
+                n_cand = (x1 - x0 + 1) * (y1 - y0 + 1) * (z1 - z0 + 1)
+                masked = n_cand <= MASK_BITS
+                every = fill and counts[i] == n_cand
+                bits = masks[i] if fill and masked else np.int64(0)
+                k = 0
+                n_hit = 0
+                for z in range(z0, z1 + 1):
+                    b_lo[2] = top_lo[2] + np.float32(z) * leaf_size[c, 2] - margin[c, 2]
+                    b_hi[2] = top_lo[2] + np.float32(z + 1) * leaf_size[c, 2] + margin[c, 2]
+                    for y in range(y0, y1 + 1):
+                        b_lo[1] = top_lo[1] + np.float32(y) * leaf_size[c, 1] - margin[c, 1]
+                        b_hi[1] = top_lo[1] + np.float32(y + 1) * leaf_size[c, 1] + margin[c, 1]
+                        for x in range(x0, x1 + 1):
+                            if fill and masked:
+                                hit = (bits >> k) & 1 == 1
+                            elif every:
+                                hit = True
+                            else:
+                                b_lo[0] = top_lo[0] + np.float32(x) * leaf_size[c, 0]
+                                b_lo[0] -= margin[c, 0]
+                                b_hi[0] = top_lo[0] + np.float32(x + 1) * leaf_size[c, 0]
+                                b_hi[0] += margin[c, 0]
+                                hit = triangle_box_overlap(tri, p, b_lo, b_hi)
+                                if masked and hit:
+                                    bits |= np.int64(1) << k
+                            if hit:
+                                leaf = base + x + lrx * (y + lry * z)
+                                if fill:
+                                    values[cursor[leaf]] = p
+                                    cursor[leaf] += 1
+                                else:
+                                    cursor[leaf + 1] += 1
+                                n_hit += 1
+                            k += 1
+                if not fill:
+                    counts[i] = n_hit
+                    if masked:
+                        masks[i] = bits
+
+
+def _chunk_cells(cell_start: np.ndarray) -> np.ndarray:
+    """Return the first top cell of each work chunk, about ``PRIM_CHUNK`` references each."""
+    n_top = cell_start.shape[0] - 1
+    cuts = np.searchsorted(cell_start, np.arange(0, int(cell_start[-1]), PRIM_CHUNK), "right")
+    return np.unique(np.concatenate([[0], np.minimum(cuts - 1, n_top), [n_top]])).astype(np.int64)
 
 
 def _leaf_geometry(top: Any, size: np.ndarray, sub_res: np.ndarray) -> tuple[Any, Any]:
@@ -217,9 +236,8 @@ def _leaf_geometry(top: Any, size: np.ndarray, sub_res: np.ndarray) -> tuple[Any
 
 
 def _cells_to_coarsen(
-    top_of_ref: np.ndarray,
+    cell_start: np.ndarray,
     bound: np.ndarray,
-    counts: np.ndarray,
     sub_res: np.ndarray,
     budget: int,
     opts: TwoLevelOptions,
@@ -237,6 +255,8 @@ def _cells_to_coarsen(
     """
     if int(bound.sum()) <= budget:
         return None
+    counts = np.diff(cell_start)
+    top_of_ref = np.repeat(np.arange(counts.shape[0], dtype=np.int64), counts)
     per_cell = np.bincount(top_of_ref, weights=bound, minlength=counts.shape[0])
     spread = per_cell / np.maximum(counts, 1)
     can = (sub_res > 1).any(axis=1)
@@ -282,7 +302,7 @@ def leaf_level(
     asked: str,
     phases: dict[str, float],
 ) -> LeafLevel:
-    """Bin every top cell's references into its sub-grid of ``sub_res`` cells, one sort.
+    """Bin every top cell's references into its sub-grid of ``sub_res`` cells.
 
     Sub-grids are first halved where the references would exceed the budget
     (:func:`_cells_to_coarsen`); ``opts`` gives ``max_cells``, ``max_refs`` and
@@ -292,20 +312,22 @@ def leaf_level(
     """
     t0 = time.perf_counter()
     sub_res = sub_res.copy()
+    if int(sub_res.max(initial=1)) > MAX_RES_AXIS:
+        raise InvalidInputError(f"{asked}: a sub-grid above {MAX_RES_AXIS} cells per axis")
     n_top = top.n_cells
-    counts = np.diff(top.cell_start)
     size = ((top.hi - top.lo) / top.res).astype(REAL)
-    top_of_ref = np.repeat(np.arange(n_top, dtype=np.int64), counts)
+    chunks = _chunk_cells(top.cell_start)
     n_ref = top.n_refs
-    offsets = np.empty(n_ref, dtype=np.int64)
-    no_masks = np.empty(0, dtype=np.int64)
+    counts = np.empty(n_ref, dtype=np.int64)
+    span = np.empty((n_ref, 6), dtype=np.int16)
+    no_int64 = np.empty(0, dtype=np.int64)
     budget = min(opts.max_refs, max(n_ref, int(opts.max_refs_per_prim * top.n_prims)))
     for _ in range(MAX_SHRINK_ROUNDS):
         leaf_size, margin = _leaf_geometry(top, size, sub_res)
-        args = (tri, top_of_ref, top.prim_index, top.lo, size, top.res, sub_res,
-                np.zeros(n_top + 1, INDEX), leaf_size, margin, offsets)  # fmt: skip
-        _leaf_pairs(*args, no_masks, offsets, np.empty(0, np.int64), np.empty(0, np.int32), BOUND)
-        shrink = _cells_to_coarsen(top_of_ref, offsets, counts, sub_res, budget, opts)
+        args = (tri, top.cell_start, top.prim_index, chunks, top.lo, size, top.res, sub_res,
+                np.zeros(n_top + 1, INDEX), leaf_size, margin, span, counts)  # fmt: skip
+        _leaf_refs(*args, no_int64, no_int64, np.empty(0, np.int32), BOUND)
+        shrink = _cells_to_coarsen(top.cell_start, np.abs(counts), sub_res, budget, opts)
         if shrink is None:
             break
         sub_res[shrink] = np.maximum(sub_res[shrink] // 2, 1)
@@ -321,33 +343,27 @@ def leaf_level(
     leaf_size, margin = _leaf_geometry(top, size, sub_res)
     phases["sub_res"] = (time.perf_counter() - t0) * 1e3
     t1 = time.perf_counter()
-    args = (tri, top_of_ref, top.prim_index, top.lo, size, top.res, sub_res, leaf_first,
-            leaf_size, margin, offsets)  # fmt: skip
+    args = (tri, top.cell_start, top.prim_index, chunks, top.lo, size, top.res, sub_res,
+            leaf_first, leaf_size, margin, span, counts)  # fmt: skip
     masks = np.empty(n_ref, dtype=np.int64)
-    _leaf_pairs(*args, masks, offsets, np.empty(0, np.int64), np.empty(0, np.int32), COUNT)
-    total = np.cumsum(offsets)
-    n_pairs = int(total[-1]) if n_ref else 0
+    cursor = np.zeros(n_leaves + 1, dtype=np.int64)
+    _leaf_refs(*args, masks, cursor, np.empty(0, np.int32), COUNT)
+    np.cumsum(cursor, out=cursor)
+    n_pairs = int(cursor[-1])
     if n_pairs > 2**31 - 1:
         raise InvalidInputError(f"{asked}: {n_pairs} leaf references exceed int32")
-    starts = np.empty(n_ref, dtype=np.int64)
-    if n_ref:
-        starts[0] = 0
-        starts[1:] = total[:-1]
-    keys = np.empty(n_pairs, dtype=np.int64)
+    leaf_start = cursor.astype(INDEX)
     values = np.empty(n_pairs, dtype=np.int32)
-    _leaf_pairs(*args, masks, starts, keys, values, FILL)
-    phases["leaf_pairs"] = (time.perf_counter() - t1) * 1e3
-    leaf_start, values = sort_pairs(keys, values, n_leaves, phases, "leaf_")
-    return LeafLevel(
-        sub_res, leaf_first, leaf_size, leaf_start, np.ascontiguousarray(values, dtype=INDEX)
-    )
+    _leaf_refs(*args, masks, cursor, values, FILL)
+    phases["leaf_refs"] = (time.perf_counter() - t1) * 1e3
+    return LeafLevel(sub_res, leaf_first, leaf_size, leaf_start, values)
 
 
 @register(
     "builder",
     "grid.two_level",
     options=TwoLevelOptions,
-    summary="two-level grid: λ1 top grid, per-cell λ2 sub-grids, one sort for all leaves",
+    summary="two-level grid: λ1 top grid, per-cell λ2 sub-grids, all leaves binned at once",
     reference="Kalojanov, Billeter, Slusallek 2011, Two-Level Grids for Ray Tracing on GPUs",
 )
 def build_two_level_grid(
