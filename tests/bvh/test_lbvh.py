@@ -10,7 +10,7 @@ from rayaccel.bvh.builders.lbvh import LbvhOptions
 from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.morton import morton_codes
-from rayaccel.kernels.radix_sort import radix_sort
+from rayaccel.kernels.radix_sort import digit_bits, radix_sort
 
 
 def _mesh(tri):
@@ -18,7 +18,7 @@ def _mesh(tri):
     return rayaccel.TriangleMesh(tri.reshape(-1, 3), np.arange(tri.shape[0] * 3).reshape(-1, 3))
 
 
-@pytest.mark.parametrize("n_bits", [30, 63])
+@pytest.mark.parametrize("n_bits", [1, 12, 13, 23, 30, 36, 63])
 def test_radix_sort_is_a_stable_sort(threads, n_bits):
     rng = np.random.default_rng(0)
     keys = rng.integers(0, 2**n_bits, size=100_000, dtype=np.int64)
@@ -30,6 +30,10 @@ def test_radix_sort_is_a_stable_sort(threads, n_bits):
         sorted_keys, sorted_values = radix_sort(keys, values, n_bits)
         assert np.array_equal(sorted_keys, keys[order])
         assert np.array_equal(sorted_values, order)
+
+
+def test_radix_digits_split_the_key_evenly():
+    assert [digit_bits(b) for b in (1, 12, 13, 23, 24, 30, 63)] == [1, 12, 7, 12, 12, 10, 11]
 
 
 def test_morton_codes_interleave_bits():

@@ -1,14 +1,16 @@
 """Parallel least-significant-digit radix sort of int64 keys with int32 payloads.
 
-Each pass sorts by one 8-bit digit, stably: the input is cut into fixed chunks,
-every chunk counts its digits in parallel (one private histogram per chunk),
-a serial exclusive scan over (digit, chunk) turns the counts into write offsets,
-and every chunk scatters its keys in parallel to its reserved slots, in order.
+Each pass sorts by one digit of at most 12 bits (the key's bits split evenly over the
+fewest passes, so 23-bit cell ids take two passes and 30-bit Morton codes three),
+stably: the input is cut into fixed chunks, every chunk counts its digits in parallel
+(one private histogram per chunk), a serial exclusive scan over (digit, chunk) turns
+the counts into write offsets, and every chunk scatters its keys in parallel to its
+reserved slots, in order.
 Stability makes the result the unique stable sort, whatever the number of chunks
 or threads (Satish, Harris, Garland 2009, "Designing Efficient Sorting Algorithms
 for Manycore GPUs", IPDPS, is the GPU form). A pass whose digit is the same for
 every key is skipped, so equal or short keys cost one counting pass per digit.
-Cost O(passes · n); 30-bit Morton codes need 4 passes, 63-bit ones 8.
+Cost O(passes · n); 63-bit keys need 6 passes.
 """
 
 from __future__ import annotations
@@ -20,15 +22,16 @@ from numba import prange
 from rayaccel._hugepages import empty_huge
 from rayaccel._jit import cpu_kernel
 
-RADIX_BITS = 8
-RADIX = 1 << RADIX_BITS
+#: Widest digit: 4,096 counters per chunk (32 KiB) stay in the L1 cache.
+MAX_DIGIT_BITS = 12
 #: Below this many keys the sort runs in one chunk.
 MIN_CHUNK = 16384
 
 
 @cpu_kernel(parallel=True)
-def _radix_sort_kernel(keys, values, n_bits, n_chunks):
+def _radix_sort_kernel(keys, values, n_bits, digit_bits, n_chunks):
     """Sort ``keys`` (int64) and carry ``values`` (int32) along; return both sorted."""
+    radix = 1 << digit_bits
     n = keys.shape[0]
     src_k = empty_huge(n, np.int64)
     src_v = empty_huge(n, np.int32)
@@ -37,20 +40,20 @@ def _radix_sort_kernel(keys, values, n_bits, n_chunks):
     dst_k = empty_huge(n, np.int64)
     dst_v = empty_huge(n, np.int32)
     size = (n + n_chunks - 1) // n_chunks
-    hist = np.zeros((n_chunks, RADIX), dtype=np.int64)
+    hist = np.zeros((n_chunks, radix), dtype=np.int64)
     shift = 0
     while shift < n_bits:
         # Count each chunk's digits.
         for c in prange(n_chunks):
-            for d in range(RADIX):
+            for d in range(radix):
                 hist[c, d] = 0
             # Unsigned indices: no negative-index wraparound code per access.
             for i in range(c * size, min(n, (c + 1) * size)):
                 ui = np.uint64(i)
-                hist[c, np.uint64((src_k[ui] >> shift) & (RADIX - 1))] += 1
+                hist[c, np.uint64((src_k[ui] >> shift) & (radix - 1))] += 1
         # Skip a pass whose digit is constant.
         used = 0
-        for d in range(RADIX):
+        for d in range(radix):
             total = 0
             for c in range(n_chunks):
                 total += hist[c, d]
@@ -59,7 +62,7 @@ def _radix_sort_kernel(keys, values, n_bits, n_chunks):
         if used > 1:
             # Exclusive scan in (digit, chunk) order gives each chunk its slots.
             offset = 0
-            for d in range(RADIX):
+            for d in range(radix):
                 for c in range(n_chunks):
                     count = hist[c, d]
                     hist[c, d] = offset
@@ -68,7 +71,7 @@ def _radix_sort_kernel(keys, values, n_bits, n_chunks):
             for c in prange(n_chunks):
                 for i in range(c * size, min(n, (c + 1) * size)):
                     ui = np.uint64(i)
-                    d = np.uint64((src_k[ui] >> shift) & (RADIX - 1))
+                    d = np.uint64((src_k[ui] >> shift) & (radix - 1))
                     j = hist[c, d]
                     hist[c, d] = j + 1
                     uj = np.uint64(j)
@@ -76,8 +79,14 @@ def _radix_sort_kernel(keys, values, n_bits, n_chunks):
                     dst_v[uj] = src_v[ui]
             src_k, dst_k = dst_k, src_k
             src_v, dst_v = dst_v, src_v
-        shift += RADIX_BITS
+        shift += digit_bits
     return src_k, src_v
+
+
+def digit_bits(n_bits: int) -> int:
+    """Return the digit width that sorts ``n_bits``-bit keys in the fewest even passes."""
+    passes = max(1, -(-n_bits // MAX_DIGIT_BITS))
+    return max(1, -(-n_bits // passes))
 
 
 def radix_sort(keys: np.ndarray, values: np.ndarray, n_bits: int) -> tuple[np.ndarray, np.ndarray]:
@@ -103,6 +112,7 @@ def radix_sort(keys: np.ndarray, values: np.ndarray, n_bits: int) -> tuple[np.nd
         np.ascontiguousarray(keys, dtype=np.int64),
         np.ascontiguousarray(values, dtype=np.int32),
         int(n_bits),
+        digit_bits(int(n_bits)),
         n_chunks,
     )
     return sorted_pair
