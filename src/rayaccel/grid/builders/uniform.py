@@ -153,17 +153,29 @@ def _triangles_and_bounds(vertices, faces):
     n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
     part = np.empty((n_chunks, 2, 3), dtype=np.float32)
     for c in prange(n_chunks):
-        for a in range(3):
-            part[c, 0, a] = np.inf
-            part[c, 1, a] = -np.inf
+        x_lo = y_lo = z_lo = np.float32(np.inf)
+        x_hi = y_hi = z_hi = np.float32(-np.inf)
         for p in range(c * PRIM_CHUNK, min(n, (c + 1) * PRIM_CHUNK)):
             for k in range(3):
                 v = faces[p, k]
-                for a in range(3):
-                    x = vertices[v, a]
-                    tri[p, k, a] = x
-                    part[c, 0, a] = min(part[c, 0, a], x)
-                    part[c, 1, a] = max(part[c, 1, a], x)
+                x = vertices[v, 0]
+                y = vertices[v, 1]
+                z = vertices[v, 2]
+                tri[p, k, 0] = x
+                tri[p, k, 1] = y
+                tri[p, k, 2] = z
+                x_lo = min(x_lo, x)
+                y_lo = min(y_lo, y)
+                z_lo = min(z_lo, z)
+                x_hi = max(x_hi, x)
+                y_hi = max(y_hi, y)
+                z_hi = max(z_hi, z)
+        part[c, 0, 0] = x_lo
+        part[c, 0, 1] = y_lo
+        part[c, 0, 2] = z_lo
+        part[c, 1, 0] = x_hi
+        part[c, 1, 1] = y_hi
+        part[c, 1, 2] = z_hi
     bounds = np.empty((2, 3), dtype=np.float32)
     for a in range(3):
         bounds[0, a] = np.inf
