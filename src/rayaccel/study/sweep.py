@@ -253,16 +253,25 @@ class _SceneInputs:
             self.generation += 1
             self.futures.clear()
 
+    def _scatter(self, data: Any) -> Any:
+        """Scatter ``data`` to every worker under a new key.
+
+        A key derived from the data (Dask's default) would name the lost copy again,
+        and cells given it were cancelled again ("lost dependencies") until they ran
+        out of attempts.
+        """
+        return self.client.scatter(data, broadcast=True, hash=False)
+
     def mesh_future(self) -> Any:
         """Return the scattered mesh (on every worker)."""
-        return self._live("mesh", lambda: self.client.scatter(self.mesh, broadcast=True))
+        return self._live("mesh", lambda: self._scatter(self.mesh))
 
     def rayset_future(self, name: str | None) -> Any:
         """Return the scattered ray set ``name`` (None for a cell without one)."""
         if not name:
             return None
         rays = self.raysets[name]
-        return self._live(f"rays:{name}", lambda: self.client.scatter(rays, broadcast=True))
+        return self._live(f"rays:{name}", lambda: self._scatter(rays))
 
     def structure_future(self, builder: str) -> Any:
         """Return the build task of ``builder``'s counter structure (on its home worker)."""
