@@ -104,10 +104,13 @@ def sub_resolutions(size: np.ndarray, counts: np.ndarray, density: float) -> np.
     return out.astype(INDEX)
 
 
-#: ``_leaf_refs`` modes: count overlapped leaves, write the references, or bound the count.
-COUNT = 0
-FILL = 1
-BOUND = 2
+#: ``_leaf_refs`` modes (see there).
+BOUND = 0
+COUNT = 1
+COUNT_REST = 2
+FILL = 3
+#: ``counts`` of a reference whose exact count waits for the ``COUNT_REST`` pass.
+DEFERRED = -1
 #: Rounds of halving sub-grid resolutions before the leaf level fits its reference budget.
 MAX_SHRINK_ROUNDS = 64
 
@@ -117,23 +120,31 @@ def _leaf_refs(
     tri, cell_start, top_prim, chunk_cells, lo, size, res, sub_res, leaf_first, leaf_size,
     margin, span, counts, masks, cursor, values, mode,
 ):  # fmt: skip
-    """Bound, count or write the leaf cells each top reference overlaps.
+    """Bound, count or write the leaf cells each top reference overlaps; return the bound.
 
     Work goes by top cell, chunk ``k`` taking the cells ``chunk_cells[k]`` to
     ``chunk_cells[k + 1]``; a leaf belongs to one top cell, so no two chunks touch the
-    same leaf counter. ``mode`` BOUND: each reference's candidate leaves (its
-    triangle's box in leaf cells, widened by twice the margin) into ``span`` (first
-    and last per axis) and their number into ``counts``, ``-1`` for a triangle
-    strictly inside one leaf, which needs no test. COUNT: each reference's exact count
-    into ``counts`` and, with at most ``MASK_BITS`` candidate leaves, which of them it
-    overlaps into ``masks`` (as the uniform grid's pair pass does); each overlapped
-    leaf's counter ``cursor[leaf + 1]`` goes up by one. FILL: ``cursor[leaf]`` is the
-    leaf's next free slot in ``values``; the overlaps come from the mask, or need no
-    test when the count says every candidate leaf overlaps, else are tested again.
+    same leaf counter. ``mode``:
+
+    - BOUND: each reference's candidate leaves (its triangle's box in leaf cells,
+      widened by twice the margin) into ``span`` (first and last per axis).
+    - COUNT: the same, and a reference with at most ``MASK_BITS`` candidates is
+      tested at once (a triangle strictly inside one leaf needs no test): its exact
+      count into ``counts``, which candidates it overlaps into ``masks`` (as the
+      uniform grid's pair pass does), and each overlapped leaf's counter
+      ``cursor[leaf + 1]`` up by one. A reference with more candidates is marked
+      ``DEFERRED``, so the work before the budget check stays bounded.
+    - COUNT_REST: the deferred references counted likewise, from ``span``.
+    - FILL: ``cursor[leaf]`` is the leaf's next free slot in ``values``; the overlaps
+      come from the mask, or need no test when the count says every candidate leaf
+      overlaps, else are tested again.
+
+    Returns the number of candidate leaves of all references (BOUND and COUNT).
     """
     fill = mode == FILL
     rx = res[0]
     ry = res[1]
+    total = 0
     for ch in prange(chunk_cells.shape[0] - 1):
         b_lo = np.empty(3, dtype=np.float32)
         b_hi = np.empty(3, dtype=np.float32)
@@ -147,7 +158,9 @@ def _leaf_refs(
             base = np.int64(leaf_first[c])
             for i in range(cell_start[c], cell_start[c + 1]):
                 p = top_prim[i]
-                if mode == BOUND:
+                if mode == COUNT_REST and counts[i] != DEFERRED:
+                    continue
+                if mode in (BOUND, COUNT):
                     single = True
                     n_cand = np.int64(1)
                     for a in range(3):
@@ -165,23 +178,28 @@ def _leaf_refs(
                         n_cand *= last - first + 1
                         if first != last or j0 < 0 or j1 >= r:
                             single = False
-                    counts[i] = -1 if single else n_cand
-                    continue
+                    total += n_cand
+                    if mode == BOUND:
+                        continue
+                    if single:
+                        cursor[base + span[i, 0] + lrx * (span[i, 1] + lry * span[i, 2]) + 1] += 1
+                        counts[i] = 1
+                        masks[i] = 1
+                        continue
+                    if n_cand > MASK_BITS:
+                        counts[i] = DEFERRED
+                        continue
                 x0 = np.int64(span[i, 0])
                 y0 = np.int64(span[i, 1])
                 z0 = np.int64(span[i, 2])
                 x1 = np.int64(span[i, 3])
                 y1 = np.int64(span[i, 4])
                 z1 = np.int64(span[i, 5])
-                if not fill and counts[i] == -1:
-                    cursor[base + x0 + lrx * (y0 + lry * z0) + 1] += 1
-                    counts[i] = 1
-                    masks[i] = 1
-                    continue
                 n_cand = (x1 - x0 + 1) * (y1 - y0 + 1) * (z1 - z0 + 1)
                 masked = n_cand <= MASK_BITS
                 every = fill and counts[i] == n_cand
-                bits = masks[i] if fill and masked else np.int64(0)
+                from_bits = fill and masked
+                bits = masks[i] if from_bits else np.int64(0)
                 k = 0
                 n_hit = 0
                 for z in range(z0, z1 + 1):
@@ -191,7 +209,7 @@ def _leaf_refs(
                         b_lo[1] = top_lo[1] + np.float32(y) * leaf_size[c, 1] - margin[c, 1]
                         b_hi[1] = top_lo[1] + np.float32(y + 1) * leaf_size[c, 1] + margin[c, 1]
                         for x in range(x0, x1 + 1):
-                            if fill and masked:
+                            if from_bits:
                                 hit = (bits >> k) & 1 == 1
                             elif every:
                                 hit = True
@@ -216,6 +234,7 @@ def _leaf_refs(
                     counts[i] = n_hit
                     if masked:
                         masks[i] = bits
+    return total
 
 
 def _chunk_cells(cell_start: np.ndarray) -> np.ndarray:
@@ -237,7 +256,8 @@ def _leaf_geometry(top: Any, size: np.ndarray, sub_res: np.ndarray) -> tuple[Any
 
 def _cells_to_coarsen(
     cell_start: np.ndarray,
-    bound: np.ndarray,
+    span: np.ndarray,
+    total: int,
     sub_res: np.ndarray,
     budget: int,
     opts: TwoLevelOptions,
@@ -247,14 +267,15 @@ def _cells_to_coarsen(
     λ2 sizes a sub-grid by its reference count alone, so a top cell holding many large
     or identical overlapping triangles (100k copies of one triangle) would list each
     in most of its leaves: billions of pairs. While the upper bound on the pairs
-    (each reference's box in leaf cells) exceeds the budget (``max_refs``, and
-    ``max_refs_per_prim`` per primitive), the cells whose references average more than
-    ``max_refs_per_prim`` leaves are halved, or failing those every cell whose
-    references span several leaves; at resolution 1 a cell lists each reference
-    once, within the top level's own budget.
+    (``total``, each reference's box in leaf cells, ``span``) exceeds the budget
+    (``max_refs``, and ``max_refs_per_prim`` per primitive), the cells whose
+    references average more than ``max_refs_per_prim`` leaves are halved, or failing
+    those every cell whose references span several leaves; at resolution 1 a cell
+    lists each reference once, within the top level's own budget.
     """
-    if int(bound.sum()) <= budget:
+    if total <= budget:
         return None
+    bound = np.prod(span[:, 3:].astype(np.int64) - span[:, :3] + 1, axis=1)
     counts = np.diff(cell_start)
     top_of_ref = np.repeat(np.arange(counts.shape[0], dtype=np.int64), counts)
     per_cell = np.bincount(top_of_ref, weights=bound, minlength=counts.shape[0])
@@ -319,44 +340,43 @@ def leaf_level(
     chunks = _chunk_cells(top.cell_start)
     n_ref = top.n_refs
     counts = np.empty(n_ref, dtype=np.int64)
+    masks = np.empty(n_ref, dtype=np.int64)
     span = np.empty((n_ref, 6), dtype=np.int16)
-    no_int64 = np.empty(0, dtype=np.int64)
     budget = min(opts.max_refs, max(n_ref, int(opts.max_refs_per_prim * top.n_prims)))
     for _ in range(MAX_SHRINK_ROUNDS):
         leaf_size, margin = _leaf_geometry(top, size, sub_res)
+        n_sub = np.prod(sub_res.astype(np.int64), axis=1)
+        leaf_first64 = np.concatenate([[0], np.cumsum(n_sub)])
+        n_leaves = int(leaf_first64[-1])
+        # Counted in the same pass unless the leaves are too many to count.
+        fits = n_leaves <= opts.max_cells
+        cursor = np.zeros(n_leaves + 1 if fits else 0, dtype=np.int64)
         args = (tri, top.cell_start, top.prim_index, chunks, top.lo, size, top.res, sub_res,
-                np.zeros(n_top + 1, INDEX), leaf_size, margin, span, counts)  # fmt: skip
-        _leaf_refs(*args, no_int64, no_int64, np.empty(0, np.int32), BOUND)
-        shrink = _cells_to_coarsen(top.cell_start, np.abs(counts), sub_res, budget, opts)
+                leaf_first64 if fits else np.zeros(n_top + 1, np.int64), leaf_size, margin,
+                span, counts, masks, cursor)  # fmt: skip
+        total = _leaf_refs(*args, np.empty(0, np.int32), COUNT if fits else BOUND)
+        shrink = _cells_to_coarsen(top.cell_start, span, int(total), sub_res, budget, opts)
         if shrink is None:
             break
         sub_res[shrink] = np.maximum(sub_res[shrink] // 2, 1)
-    n_sub = np.prod(sub_res.astype(np.int64), axis=1)
-    leaf_first64 = np.concatenate([[0], np.cumsum(n_sub)])
-    n_leaves = int(leaf_first64[-1])
-    if n_leaves > opts.max_cells:
+    if not fits:
         raise InvalidInputError(
             f"{asked} asks for {n_leaves} leaf cells, more than "
             f"max_cells={opts.max_cells}; lower it or raise max_cells"
         )
-    leaf_first = leaf_first64.astype(INDEX)
-    leaf_size, margin = _leaf_geometry(top, size, sub_res)
-    phases["sub_res"] = (time.perf_counter() - t0) * 1e3
+    if (counts == DEFERRED).any():
+        _leaf_refs(*args, np.empty(0, np.int32), COUNT_REST)
+    phases["leaf_count"] = (time.perf_counter() - t0) * 1e3
     t1 = time.perf_counter()
-    args = (tri, top.cell_start, top.prim_index, chunks, top.lo, size, top.res, sub_res,
-            leaf_first, leaf_size, margin, span, counts)  # fmt: skip
-    masks = np.empty(n_ref, dtype=np.int64)
-    cursor = np.zeros(n_leaves + 1, dtype=np.int64)
-    _leaf_refs(*args, masks, cursor, np.empty(0, np.int32), COUNT)
     np.cumsum(cursor, out=cursor)
     n_pairs = int(cursor[-1])
     if n_pairs > 2**31 - 1:
         raise InvalidInputError(f"{asked}: {n_pairs} leaf references exceed int32")
     leaf_start = cursor.astype(INDEX)
     values = np.empty(n_pairs, dtype=np.int32)
-    _leaf_refs(*args, masks, cursor, values, FILL)
-    phases["leaf_refs"] = (time.perf_counter() - t1) * 1e3
-    return LeafLevel(sub_res, leaf_first, leaf_size, leaf_start, values)
+    _leaf_refs(*args, values, FILL)
+    phases["leaf_fill"] = (time.perf_counter() - t1) * 1e3
+    return LeafLevel(sub_res, leaf_first64.astype(INDEX), leaf_size, leaf_start, values)
 
 
 @register(
