@@ -18,16 +18,21 @@ def _mesh(tri):
     return rayaccel.TriangleMesh(tri.reshape(-1, 3), np.arange(tri.shape[0] * 3).reshape(-1, 3))
 
 
-@pytest.mark.parametrize("n_bits", [1, 12, 13, 23, 30, 36, 63])
-def test_radix_sort_is_a_stable_sort(threads, n_bits):
+@pytest.mark.parametrize(
+    ("n_bits", "key_type"),
+    [(1, np.int64), (12, np.int64), (13, np.int32), (23, np.int32), (30, np.int64),
+     (31, np.int32), (36, np.int64), (63, np.int64)],
+)  # fmt: skip
+def test_radix_sort_is_a_stable_sort(threads, n_bits, key_type):
     rng = np.random.default_rng(0)
-    keys = rng.integers(0, 2**n_bits, size=100_000, dtype=np.int64)
+    keys = rng.integers(0, 2**n_bits, size=100_000, dtype=np.int64).astype(key_type)
     keys[::7] = keys[3]  # many duplicates: stability matters
     values = np.arange(keys.size, dtype=np.int32)
     order = np.argsort(keys, kind="stable")
     for n in (1, 2):
         threads(n)
         sorted_keys, sorted_values = radix_sort(keys, values, n_bits)
+        assert sorted_keys.dtype == key_type
         assert np.array_equal(sorted_keys, keys[order])
         assert np.array_equal(sorted_values, order)
 

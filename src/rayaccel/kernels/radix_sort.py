@@ -1,4 +1,4 @@
-"""Parallel least-significant-digit radix sort of int64 keys with int32 payloads.
+"""Parallel least-significant-digit radix sort of int32 or int64 keys with int32 payloads.
 
 Each pass sorts by one digit of at most 12 bits (the key's bits split evenly over the
 fewest passes, so 23-bit cell ids take two passes and 30-bit Morton codes three),
@@ -30,14 +30,14 @@ MIN_CHUNK = 16384
 
 @cpu_kernel(parallel=True)
 def _radix_sort_kernel(keys, values, n_bits, digit_bits, n_chunks):
-    """Sort ``keys`` (int64) and carry ``values`` (int32) along; return both sorted."""
+    """Sort ``keys`` (int32 or int64) and carry ``values`` (int32) along; return both sorted."""
     radix = 1 << digit_bits
     n = keys.shape[0]
-    src_k = empty_huge(n, np.int64)
+    src_k = empty_huge(n, keys.dtype)
     src_v = empty_huge(n, np.int32)
     src_k[:] = keys
     src_v[:] = values
-    dst_k = empty_huge(n, np.int64)
+    dst_k = empty_huge(n, keys.dtype)
     dst_v = empty_huge(n, np.int32)
     size = (n + n_chunks - 1) // n_chunks
     hist = np.zeros((n_chunks, radix), dtype=np.int64)
@@ -94,8 +94,8 @@ def radix_sort(keys: np.ndarray, values: np.ndarray, n_bits: int) -> tuple[np.nd
 
     Parameters
     ----------
-    keys : (n,) int64
-        Sort keys, non-negative.
+    keys : (n,) int32 or int64
+        Sort keys, non-negative (int32 keys move a third less memory per pass).
     values : (n,) int32
         Payload carried along with its key.
     n_bits : int
@@ -103,13 +103,14 @@ def radix_sort(keys: np.ndarray, values: np.ndarray, n_bits: int) -> tuple[np.nd
 
     Returns
     -------
-    keys, values : (n,) int64, (n,) int32
+    keys, values : (n,) int32 or int64 as given (other integers: int64), (n,) int32
         New arrays, sorted; equal keys keep their input order.
     """
+    key_type = np.int32 if np.asarray(keys).dtype == np.int32 else np.int64
     n = keys.shape[0]
     n_chunks = int(min(max(1, n // MIN_CHUNK), 4 * numba.get_num_threads()))
     sorted_pair: tuple[np.ndarray, np.ndarray] = _radix_sort_kernel(
-        np.ascontiguousarray(keys, dtype=np.int64),
+        np.ascontiguousarray(keys, dtype=key_type),
         np.ascontiguousarray(values, dtype=np.int32),
         int(n_bits),
         digit_bits(int(n_bits)),

@@ -363,7 +363,9 @@ def build_uniform(
     t1 = time.perf_counter()
     counts = np.empty(n, dtype=np.int64)
     masks = np.empty(n, dtype=np.int64)
-    dummy_k = np.empty(0, dtype=np.int64)
+    # Cell ids as int32 where they fit (always below max_cells' default): less to move.
+    key_type = np.int32 if n_cells <= 2**31 - 1 else np.int64
+    dummy_k = np.empty(0, dtype=key_type)
     dummy_v = np.empty(0, dtype=np.int32)
     _pairs(tri, lo, size, margin, res, first, last, counts, masks, counts, dummy_k, dummy_v,
            False)  # fmt: skip
@@ -373,7 +375,7 @@ def build_uniform(
     offsets[0] = 0
     np.cumsum(counts[:-1], out=offsets[1:])
     n_refs = int(offsets[-1] + counts[-1])
-    keys = np.empty(n_refs, dtype=np.int64)
+    keys = np.empty(n_refs, dtype=key_type)
     values = np.empty(n_refs, dtype=np.int32)
     _pairs(tri, lo, size, margin, res, first, last, counts, masks, offsets, keys, values, True)
     phases["fill"] = (time.perf_counter() - t1) * 1e3
