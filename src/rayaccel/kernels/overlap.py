@@ -13,9 +13,9 @@ try 13 axes:
 Fewer suffice when the triangle's extent along some box axis ``a`` lies within the
 box's: the triangle then meets the box exactly when its projection along ``a`` meets
 the box's face rectangle, a 2D test on the two other face axes and the three axes
-``a × e_j``; with two such axes the third axis's interval test decides. Grid cells
-are small against most triangles' extents on at most one axis, so most of their
-tests end after the face axes or three edge axes.
+``a × e_j``; with two such axes the third axis's interval test decides. A grid's
+candidate cells often hold a triangle's whole extent along one or two axes, and their
+tests then end after the face axes or three edge axes.
 
 Grids use it to list the cells a triangle really touches rather than every cell of
 its bounding box (cell/primitive pairs), as do kd-tree and octree builders.

@@ -22,7 +22,7 @@ from numba import prange
 from rayaccel._hugepages import empty_huge
 from rayaccel._jit import cpu_kernel
 
-#: Widest digit: 4,096 counters per chunk (32 KiB) stay in the L1 cache.
+#: Widest digit: a chunk's 4,096 counters (32 KiB) fit a 48 KiB L1 data cache.
 MAX_DIGIT_BITS = 12
 #: Below this many keys the sort runs in one chunk.
 MIN_CHUNK = 16384
