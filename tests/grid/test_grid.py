@@ -19,6 +19,7 @@ import pytest
 import rayaccel
 import reference
 from rayaccel.errors import InvalidInputError, StructureInvariantError
+from rayaccel.grid.builders import two_level
 from rayaccel.grid.builders.skip import chessboard_distance, macro_regions, mip_bits
 from rayaccel.grid.builders.uniform import UniformGridOptions, grid_resolution
 from rayaccel.grid.layouts.uniform import (
@@ -225,6 +226,21 @@ def test_copies_of_one_triangle():
     assert info["n_refs"] <= 16 * 100_000
     rays = reference.subsample(reference.mixed_rays(mesh, 120, seed=9), 60)
     _check(accel, rays, "grid.dda", "copies")
+
+
+@pytest.mark.parametrize("rounds", [1, 2])
+def test_two_level_stops_coarsening_after_its_rounds(monkeypatch, rounds):
+    """Identical triangles need the sub-grids halved; cut short, the grid is still right."""
+    tri = np.broadcast_to(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64), (5000, 3, 3))
+    mesh = rayaccel.TriangleMesh(tri.reshape(-1, 3), np.arange(15000).reshape(-1, 3))
+    full = rayaccel.build(mesh, "grid.two_level", max_refs_per_prim=2.0)
+    monkeypatch.setattr(two_level, "MAX_SHRINK_ROUNDS", rounds)
+    accel = rayaccel.build(mesh, "grid.two_level", max_refs_per_prim=2.0)
+    accel.validate()
+    # Fewer halvings leave more leaves per crowded top cell, so more references.
+    assert accel.structure.prim_index.shape[0] > full.structure.prim_index.shape[0]
+    rays = reference.subsample(reference.mixed_rays(mesh, 120, seed=4), 60)
+    _check(accel, rays, "grid.dda", f"{rounds} rounds")
 
 
 def test_two_level_leaves_and_cap():

@@ -343,7 +343,7 @@ def leaf_level(
     masks = np.empty(n_ref, dtype=np.int64)
     span = np.empty((n_ref, 6), dtype=np.int16)
     budget = min(opts.max_refs, max(n_ref, int(opts.max_refs_per_prim * top.n_prims)))
-    for _ in range(MAX_SHRINK_ROUNDS):
+    for round_index in range(MAX_SHRINK_ROUNDS):
         leaf_size, margin = _leaf_geometry(top, size, sub_res)
         n_sub = np.prod(sub_res.astype(np.int64), axis=1)
         leaf_first64 = np.concatenate([[0], np.cumsum(n_sub)])
@@ -355,6 +355,8 @@ def leaf_level(
                 leaf_first64 if fits else np.zeros(n_top + 1, np.int64), leaf_size, margin,
                 span, counts, masks, cursor)  # fmt: skip
         total = _leaf_refs(*args, np.empty(0, np.int32), COUNT if fits else BOUND)
+        if round_index == MAX_SHRINK_ROUNDS - 1:
+            break  # the counts of the last round stand
         shrink = _cells_to_coarsen(top.cell_start, span, int(total), sub_res, budget, opts)
         if shrink is None:
             break
