@@ -296,24 +296,6 @@ def cell_ranges(keys, n_cells):
     return start
 
 
-def sort_pairs(
-    keys: np.ndarray, values: np.ndarray, n_cells: int, phases: dict[str, float], prefix: str
-) -> tuple[np.ndarray, np.ndarray]:
-    """Sort (cell, primitive) pairs by cell; return ``(cell_start, primitives in cell order)``.
-
-    The radix sort and the cell ranges (:func:`cell_ranges`) are timed into
-    ``phases[prefix + "sort"]`` and ``phases[prefix + "ranges"]``. Shared by the
-    uniform grid and the leaf level of the two-level grid.
-    """
-    t1 = time.perf_counter()
-    keys, values = radix_sort(keys, values, max(1, (n_cells - 1).bit_length()))
-    phases[prefix + "sort"] = (time.perf_counter() - t1) * 1e3
-    t1 = time.perf_counter()
-    cell_start = cell_ranges(keys, n_cells)
-    phases[prefix + "ranges"] = (time.perf_counter() - t1) * 1e3
-    return cell_start, values
-
-
 def build_uniform(
     mesh: TriangleMesh, options: UniformGridOptions, key: str
 ) -> tuple[UniformGrid, np.ndarray]:
@@ -379,7 +361,12 @@ def build_uniform(
     values = np.empty(n_refs, dtype=np.int32)
     _pairs(tri, lo, size, margin, res, first, last, counts, masks, offsets, keys, values, True)
     phases["fill"] = (time.perf_counter() - t1) * 1e3
-    cell_start, values = sort_pairs(keys, values, n_cells, phases, "")
+    t1 = time.perf_counter()
+    keys, values = radix_sort(keys, values, max(1, (n_cells - 1).bit_length()))
+    phases["sort"] = (time.perf_counter() - t1) * 1e3
+    t1 = time.perf_counter()
+    cell_start = cell_ranges(keys, n_cells)
+    phases["ranges"] = (time.perf_counter() - t1) * 1e3
     grid = UniformGrid(
         lo=lo,
         hi=hi,
