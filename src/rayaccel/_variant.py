@@ -250,11 +250,29 @@ REGISTRY: dict[str, Variant] = {}
 PAUSABLE: dict[str, Callable[..., Any]] = {}
 
 
+def annotated_options(func: Callable[..., Any]) -> type:
+    """Return the options dataclass that ``func``'s ``options`` parameter is annotated with.
+
+    ``options: SbvhOptions | None = None`` gives ``SbvhOptions``: a variant states its
+    options type once, in its signature, and the registry reads it from there.
+    """
+    parameter = inspect.signature(func).parameters.get("options")
+    annotation = getattr(parameter, "annotation", inspect.Parameter.empty)
+    if isinstance(annotation, str):
+        # A postponed annotation: the names it holds are the module's own.
+        annotation = eval(annotation, func.__globals__)
+    found = [t for t in typing.get_args(annotation) or (annotation,) if t is not type(None)]
+    if len(found) != 1 or not dataclasses.is_dataclass(found[0]):
+        raise TypeError(f"{func.__qualname__}: annotate 'options' with one options dataclass")
+    options: type = found[0]
+    return options
+
+
 def register(
     role: Role,
     key: str,
     *,
-    options: type,
+    options: type | None = None,
     summary: str,
     reference: str = "",
     backend: Literal["cpu", "cuda"] = "cpu",
@@ -262,6 +280,9 @@ def register(
     default: bool = False,
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """Return a decorator that registers ``func`` as the variant ``key``.
+
+    ``options`` defaults to the dataclass ``func``'s ``options`` parameter is annotated
+    with (:func:`annotated_options`).
 
     ``stage`` applies to steps only: ``"after"`` (default) for a post-process of the
     built structure, ``"before"`` for a step that makes the references the builder
@@ -281,8 +302,9 @@ def register(
     def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
         if key in REGISTRY and REGISTRY[key].func is not func:
             raise ValueError(f"variant {key!r} registered twice")
+        options_type = annotated_options(func) if options is None else options
         REGISTRY[key] = Variant(
-            key, role, structure, func, options, summary, reference, backend, stage, default
+            key, role, structure, func, options_type, summary, reference, backend, stage, default
         )
         with_shared_sections(func, role)
         return func

@@ -15,7 +15,7 @@ import inspect
 from collections.abc import Callable
 from typing import Any, NamedTuple, TypeAlias
 
-from rayaccel._variant import register
+from rayaccel._variant import annotated_options, register
 from rayaccel.rays.batch import HitBatch, RayBatch
 from rayaccel.trace.run import DEFAULT_OVERFLOW_HINT, run_trace
 
@@ -58,7 +58,6 @@ def _public_signature(trace: Callable[..., HitBatch], plan: Callable[..., TraceP
 def register_traversal(
     key: str,
     *,
-    options: type,
     summary: str,
     reference: str = "",
     default: bool = False,
@@ -66,15 +65,17 @@ def register_traversal(
     """Return a decorator that registers a traversal from its plan.
 
     The decorated ``plan(structure, mesh, options, cache) -> TracePlan`` receives the
-    options (their defaults when the caller passes none) and the ``Accel``'s layout
+    options (of the dataclass its ``options`` parameter is annotated with, their
+    defaults when the caller passes none) and the ``Accel``'s layout
     cache. The decorator returns, and registers as the variant ``key``, the public
     ``trace(structure, mesh, rays, *, query="closest", stats=False, options=None,
     cache=None) -> HitBatch`` that runs the plan with :func:`run_trace`; it keeps the
     plan's name and docstring.
     """
-    options_type = options
 
     def decorate(plan: Callable[..., TracePlan]) -> Callable[..., HitBatch]:
+        options_type = annotated_options(plan)
+
         # The plan's name and docstring; its annotations are not the public function's.
         @functools.wraps(plan, assigned=("__module__", "__name__", "__qualname__", "__doc__"))
         def trace(
@@ -92,9 +93,9 @@ def register_traversal(
             return run_trace(kernel_for, arrays, rays, query, stats, overflow_hint)
 
         del trace.__wrapped__
-        trace.__signature__ = _public_signature(trace, plan, options)  # type: ignore[attr-defined]
+        trace.__signature__ = _public_signature(trace, plan, options_type)  # type: ignore[attr-defined]
         registered: Callable[..., HitBatch] = register(
-            "traversal", key, options=options, summary=summary, reference=reference,
+            "traversal", key, options=options_type, summary=summary, reference=reference,
             default=default,
         )(trace)  # fmt: skip
         return registered

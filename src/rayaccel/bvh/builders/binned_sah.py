@@ -182,7 +182,6 @@ def _split_level(
 @register(
     "builder",
     "bvh2.binned_sah",
-    options=BinnedSahOptions,
     default=True,
     summary="top-down binned SAH on centroid bins, parallel over large nodes and subtrees",
     reference="Wald 2007, On fast Construction of SAH-based Bounding Volume Hierarchies",

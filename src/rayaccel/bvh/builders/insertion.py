@@ -209,7 +209,6 @@ def build_insertion_refs(
 @register(
     "builder",
     "bvh2.insertion",
-    options=InsertionOptions,
     summary="insertion build: add primitives one by one where the SAH grows least, SAH collapse",
     reference="Goldsmith & Salmon 1987, Automatic Creation of Object Hierarchies for Ray Tracing",
 )

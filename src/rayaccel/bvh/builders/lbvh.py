@@ -324,7 +324,6 @@ def build_lbvh_refs(
 @register(
     "builder",
     "bvh2.lbvh",
-    options=LbvhOptions,
     summary="linear BVH: Morton codes, parallel radix sort, Apetrei 2014 or Karras 2012 "
     "emission, SAH collapse",
     reference="Apetrei 2014, Fast and Simple Agglomerative LBVH Construction; Karras 2012, "

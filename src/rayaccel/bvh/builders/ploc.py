@@ -238,7 +238,6 @@ def build_ploc_refs(
 @register(
     "builder",
     "bvh2.ploc",
-    options=PlocOptions,
     summary="parallel locally-ordered clustering in a Morton-order window, SAH collapse",
     reference="Meister & Bittner 2018, Parallel Locally-Ordered Clustering for BVH Construction",
 )

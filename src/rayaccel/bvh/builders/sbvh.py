@@ -141,7 +141,6 @@ def _leaf_boxes(refs, left_of, t_first, t_count, lo, hi, n_used):
 @register(
     "builder",
     "bvh2.sbvh",
-    options=SbvhOptions,
     summary="SAH BVH with spatial splits: chopped binning, exact clipping, unsplitting",
     reference="Stich, Friedrich, Dietrich 2009, Spatial Splits in Bounding Volume Hierarchies",
 )

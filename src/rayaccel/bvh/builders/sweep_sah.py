@@ -75,7 +75,6 @@ def _root_box(prim_lo, prim_hi, t_lo, t_hi):
 @register(
     "builder",
     "bvh2.sweep_sah",
-    options=SweepSahOptions,
     summary="top-down full-sweep SAH over presorted centroid orders (reference quality)",
     reference="Wald, Boulos, Shirley 2007, Ray Tracing Deformable Scenes using Dynamic BVHs",
 )

@@ -44,7 +44,6 @@ class CollapseOptions:
 @register(
     "step",
     "bvh2+collapse",
-    options=CollapseOptions,
     summary="merge subtrees into leaves where the SAH prefers a leaf",
     reference="Meister & Bittner 2018, Parallel Locally-Ordered Clustering ..., §4.4",
 )

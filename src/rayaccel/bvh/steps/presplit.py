@@ -467,7 +467,6 @@ def presplit_median(tri: np.ndarray, budget: float, base: float, exponent: float
 @register(
     "step",
     "bvh2+presplit",
-    options=PresplitOptions,
     summary="split large triangles into smaller boxes before building (spatial median or EVH)",
     reference="Karras & Aila 2013, Fast Parallel Construction of High-Quality BVHs, §5.9; "
     "Dammertz & Keller 2008, The Edge Volume Heuristic",

@@ -241,7 +241,6 @@ def _inner_area(left, lo, hi):
 @register(
     "step",
     "bvh2+reinsert",
-    options=ReinsertOptions,
     summary="remove inefficient nodes and reinsert their subtrees where the SAH grows least",
     reference="Bittner, Hapala, Havran 2013, Fast Insertion-Based Optimization of BVHs",
 )

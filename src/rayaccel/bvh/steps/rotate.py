@@ -335,7 +335,6 @@ def annealing_schedule(opt: RotateOptions) -> np.ndarray:
 @register(
     "step",
     "bvh2+rotate",
-    options=RotateOptions,
     summary="tree rotations: hill climbing or simulated annealing on local subtree swaps",
     reference="Kensler 2008, Tree Rotations for Improving Bounding Volume Hierarchies",
 )

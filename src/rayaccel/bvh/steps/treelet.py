@@ -443,7 +443,6 @@ def split_leaves_linked(
 @register(
     "step",
     "bvh2+treelet",
-    options=TreeletOptions,
     summary="restructure 7-leaf treelets bottom-up into their SAH-optimal form (DP)",
     reference="Karras & Aila 2013, Fast Parallel Construction of High-Quality BVHs",
 )

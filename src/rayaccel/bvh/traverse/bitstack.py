@@ -147,7 +147,6 @@ trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 @register_traversal(
     "bvh2.bitstack",
-    options=BitstackOptions,
     summary="stackless ordered traversal with a per-level bitstack and parent links",
     reference="Áfra & Szirmay-Kalos 2014, Stackless Multi-BVH Traversal for CPU, MIC and GPU",
 )

@@ -182,7 +182,6 @@ trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 @register_traversal(
     "bvh2.parent_link",
-    options=ParentLinkOptions,
     summary="stackless three-state machine over parent and sibling links (distance order)",
     reference="Hapala et al. 2011, Efficient Stack-less BVH Traversal for Ray Tracing",
 )

@@ -387,7 +387,6 @@ trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 @register_traversal(
     "bvh2.perfect_hash",
-    options=PerfectHashOptions,
     summary="stackless ordered traversal, keys + bit trail + perfect hash: O(1) backtracking",
     reference=(
         "Binder & Keller 2016, Efficient Stackless Hierarchy Traversal on GPUs with "

@@ -228,7 +228,6 @@ trace_kernel = body_kernels(make_scratch, cpu_inline(trace_rays_py))
 
 @register_traversal(
     "bvh2.restart_trail",
-    options=RestartTrailOptions,
     summary="stackless ordered traversal restarting from the root along a per-level trail",
     reference="Laine 2010, Restart Trail for Stackless BVH Traversal",
 )

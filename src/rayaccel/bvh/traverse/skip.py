@@ -101,7 +101,6 @@ trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 @register_traversal(
     "bvh2.skip",
-    options=SkipOptions,
     summary="stackless fixed-order walk over pre-order nodes with skip pointers",
     reference="Smits 1998, Efficiency Issues for Ray Tracing",
 )

@@ -230,7 +230,6 @@ def stack_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) ->
 
 @register_traversal(
     "bvh2.stack",
-    options=StackOptions,
     default=True,
     summary="ordered stack traversal, near child first (closest and any hit)",
     reference="Aila & Laine 2009, Understanding the Efficiency of Ray Traversal on GPUs",

@@ -273,7 +273,6 @@ def wide_bvh(
 
 @register_traversal(
     "bvh2.wide",
-    options=WideOptions,
     summary="ordered stack traversal of the 4- or 8-wide collapsed tree, vector box tests",
     reference="Wald, Benthin, Boulos 2008, Getting Rid of Packets; Dammertz, Hanika, Keller "
     "2008, Shallow Bounding Volume Hierarchies",

@@ -318,7 +318,6 @@ def expand_cells(box, first, count, pool, leaf_cell, top_res, shift, log_dim, le
 @register(
     "builder",
     "grid.irregular",
-    options=IrregularOptions,
     summary="irregular grid: λ1 top grid, power-of-two leaves, SAH merges, expanded exits",
     reference="Pérard-Gayot, Kalojanov, Slusallek 2017, GPU Ray Tracing using Irregular Grids",
 )

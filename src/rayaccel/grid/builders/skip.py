@@ -225,7 +225,6 @@ def _build_skip_grid(
 @register(
     "builder",
     "grid.distance",
-    options=UniformGridOptions,
     summary="uniform grid plus a chessboard distance field over empty cells (linear time)",
     reference="Es & Isler 2007, Accelerated regular grid traversals using extended "
     "anisotropic chessboard distance fields (Devillers thesis §4.1.3)",
@@ -240,7 +239,6 @@ def build_distance_grid(
 @register(
     "builder",
     "grid.macro_regions",
-    options=UniformGridOptions,
     summary="uniform grid plus macro regions: empty space partitioned into empty boxes",
     reference="Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure "
     "for Ray Tracing",
@@ -255,7 +253,6 @@ def build_macro_region_grid(
 @register(
     "builder",
     "grid.mipmap",
-    options=UniformGridOptions,
     summary="uniform grid plus an occupancy mip-map (pyramid), climbed from empty cells",
     reference="Devillers 1989 (macro regions) as the thesis varies it: an occupancy mip-map "
     "traversed hierarchically",

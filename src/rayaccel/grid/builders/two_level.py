@@ -384,7 +384,6 @@ def leaf_level(
 @register(
     "builder",
     "grid.two_level",
-    options=TwoLevelOptions,
     summary="two-level grid: λ1 top grid, per-cell λ2 sub-grids, all leaves binned at once",
     reference="Kalojanov, Billeter, Slusallek 2011, Two-Level Grids for Ray Tracing on GPUs",
 )

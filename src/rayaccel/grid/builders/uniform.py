@@ -385,7 +385,6 @@ def build_uniform(
 @register(
     "builder",
     "grid.uniform",
-    options=UniformGridOptions,
     default=True,
     summary="uniform grid, λ cells per primitive, sort-based parallel build with exact overlap",
     reference="Kalojanov & Slusallek 2009, A Parallel Algorithm for Construction of Uniform Grids",

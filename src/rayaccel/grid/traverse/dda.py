@@ -324,7 +324,6 @@ def _plan(
 
 @register_traversal(
     "grid.dda",
-    options=DdaOptions,
     default=True,
     summary="3D-DDA cell walk with a per-ray mailbox (closest and any hit)",
     reference="Amanatides & Woo 1987, A Fast Voxel Traversal Algorithm for Ray Tracing",
@@ -345,7 +344,6 @@ def trace_grid_dda(
 
 @register_traversal(
     "grid.skip",
-    options=DdaOptions,
     summary="3D-DDA jumping over the grid's empty boxes (distance field, macro regions, mip-map)",
     reference="Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure",
 )

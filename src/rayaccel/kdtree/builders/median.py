@@ -50,7 +50,6 @@ class KdMedianOptions:
 @register(
     "builder",
     "kdtree.median",
-    options=KdMedianOptions,
     summary="spatial-median kd-tree (the longest axis of the cell cut in half)",
     reference="Kaplan 1985, Space-tracing: a constant time ray-tracer",
 )

@@ -74,7 +74,6 @@ class KdSahOptions:
 @register(
     "builder",
     "kdtree.sah",
-    options=KdSahOptions,
     default=True,
     summary="SAH kd-tree by the O(N log N) event sweep with perfect splits",
     reference="Wald & Havran 2006, On building fast kd-Trees for Ray Tracing, and on doing "

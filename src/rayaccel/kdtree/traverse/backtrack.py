@@ -63,7 +63,6 @@ def _arrays(kd: KdTree, mesh: TriangleMesh, cache: dict[str, Any] | None) -> Sta
 
 @register_traversal(
     "kdtree.backtrack",
-    options=KdBacktrackOptions,
     summary="kd-backtrack: stackless, each descent from the nearest ancestor still ahead",
     reference="Foley & Sugerman 2005, KD-Tree Acceleration Structures for a GPU Raytracer",
 )

@@ -25,7 +25,6 @@ class KdRestartOptions:
 
 @register_traversal(
     "kdtree.restart",
-    options=KdRestartOptions,
     summary="kd-restart: stackless, every leaf found by a descent from the root",
     reference="Foley & Sugerman 2005, KD-Tree Acceleration Structures for a GPU Raytracer",
 )

@@ -116,7 +116,6 @@ def rope_layout(kd: KdTree, optimize: bool) -> KdRopes:
 
 @register_traversal(
     "kdtree.ropes",
-    options=KdRopesOptions,
     summary="stackless traversal along leaf-face ropes (leaf boxes, optional rope optimisation)",
     reference="Popov, Günther, Seidel, Slusallek 2007, Stackless KD-Tree Traversal for High "
     "Performance GPU Ray Tracing",

@@ -39,7 +39,6 @@ class KdShortStackOptions:
 
 @register_traversal(
     "kdtree.short_stack",
-    options=KdShortStackOptions,
     summary="short stack (a ring of far children) with push-down restarts",
     reference="Horn, Sugerman, Houston, Hanrahan 2007, Interactive k-D Tree GPU Raytracing",
 )

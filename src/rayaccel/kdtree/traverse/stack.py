@@ -199,7 +199,6 @@ def trace_kernel(order: int) -> Any:
 
 @register_traversal(
     "kdtree.stack",
-    options=KdStackOptions,
     default=True,
     summary="front-to-back kd-tree traversal with a stack (closest and any hit)",
     reference="Slusallek, kd-tree traversal (lecture); Havran 2000, Heuristic Ray Shooting "
