@@ -262,9 +262,9 @@ def annotated_options(func: Callable[..., Any]) -> type:
         # A postponed annotation: the names it holds are the module's own.
         annotation = eval(annotation, func.__globals__)
     found = [t for t in typing.get_args(annotation) or (annotation,) if t is not type(None)]
-    if len(found) != 1 or not dataclasses.is_dataclass(found[0]):
+    options = found[0] if len(found) == 1 else None
+    if not isinstance(options, type) or not dataclasses.is_dataclass(options):
         raise TypeError(f"{func.__qualname__}: annotate 'options' with one options dataclass")
-    options: type = found[0]
     return options
 
 

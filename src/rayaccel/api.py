@@ -44,6 +44,7 @@ from rayaccel.kdtree.layouts.kdtree import KdTree
 from rayaccel.kdtree.precision import check_conservative, conservative_kdtree
 from rayaccel.queries import QUERY_KINDS
 from rayaccel.rays.batch import HitBatch, RayBatch
+from rayaccel.rays.coherence import packet_coherence
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.run import LAYOUT_MS
 from rayaccel.trace.structure import QualityMetrics, Structure
@@ -96,6 +97,8 @@ class Accel:
         self.step_ms = dict(step_ms or {key: build_ms})
         self.structure_name = registry.get_chain(key)[0].structure
         self._cache: dict[str, Any] = {}
+        #: The mesh and its box's diagonal, the scale of a batch's coherence.
+        self._scene_diagonal: tuple[TriangleMesh, float] | None = None
         self._lock = threading.Lock()
         #: Options of each build step by step name (set by :func:`build`), for rebuilds.
         self.step_options: dict[str, Any] = {}
@@ -137,8 +140,10 @@ class Accel:
             ``"any"`` stops at the first hit found (``prim`` is some hit, not the closest).
         traversal : str, optional
             Traversal registry key; default: the structure's fastest CPU traversal
-            (:func:`rayaccel.registry.query_traversal`, ``bvh2.wide`` for BVHs), and
-            on ``device="cuda"`` its default traversal
+            for this batch (:func:`rayaccel.registry.query_traversal`: for BVHs
+            ``bvh2.packet`` when the batch is coherent, such as camera rays in image
+            order or shadow rays towards one light, and ``bvh2.wide`` otherwise or
+            when ``options`` are given), and on ``device="cuda"`` its default traversal
             (:func:`rayaccel.registry.default_traversal`, ``bvh2.stack``).
         stats : bool
             Fill ``hits.stats`` with per-ray counters.
@@ -162,6 +167,8 @@ class Accel:
             key = traversal
         elif device == "cuda":
             key = registry.default_traversal(self.structure_name)
+        elif isinstance(rays, RayBatch) and not options:
+            key = self.query_traversal(rays)
         else:
             key = registry.query_traversal(self.structure_name)
         variant = registry.get(key, "traversal")
@@ -191,6 +198,23 @@ class Accel:
         return variant.func(  # type: ignore[no-any-return]
             structure, mesh, rays, query=query, stats=stats, options=opts, cache=cache
         )
+
+    def query_traversal(self, rays: RayBatch) -> str:
+        """Return the traversal :meth:`trace` uses for ``rays`` when it is given none.
+
+        The structure's packet traversal when the batch is coherent (the share of its
+        coherent packets, :func:`rayaccel.rays.coherence.packet_coherence`, reaches
+        :data:`rayaccel.registry.COHERENT_SHARE`), else its fastest single-ray one
+        (:func:`rayaccel.registry.query_traversal`).
+        """
+        if self.structure_name not in registry.COHERENT_TRAVERSAL:
+            return registry.query_traversal(self.structure_name)
+        mesh = self.mesh
+        memo = self._scene_diagonal
+        if memo is None or memo[0] is not mesh:
+            lo, hi = mesh.bounds()
+            memo = self._scene_diagonal = (mesh, float(np.linalg.norm(hi.astype(np.float64) - lo)))
+        return registry.query_traversal(self.structure_name, packet_coherence(rays, memo[1]))
 
     def _trace_cuda(
         self, key: str, variant: Any, rays: Any, query: str, stats: bool, opts: Any

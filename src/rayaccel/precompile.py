@@ -143,13 +143,18 @@ def jobs(
 def common_parallel(traversal: str, query: str, stats: bool) -> bool:
     """Keep the parallel kernels that plain queries reach (a ``variant_filter`` for :func:`jobs`).
 
-    Every parallel kernel of each structure's default (reference) and fastest traversal,
+    Every parallel kernel of each structure's default (reference) and fastest traversals
+    (for incoherent and coherent batches),
     and the plain closest-hit kernel of every other traversal; the statistics and any-hit
     parallel kernels of the other traversals compile on first use. ``make test`` warms
     this set: the default test tier runs no other parallel kernel.
     """
     structure = registry.get(traversal, "traversal").structure
-    main = {registry.default_traversal(structure), registry.query_traversal(structure)}
+    main = {
+        registry.default_traversal(structure),
+        registry.query_traversal(structure),
+        registry.query_traversal(structure, coherence=1.0),
+    }
     return traversal in main or (query == "closest" and not stats)
 
 

@@ -79,6 +79,7 @@ BUILTIN_MODULES: tuple[str, ...] = (
     "rayaccel.bvh.traverse.restart_trail",
     "rayaccel.bvh.traverse.perfect_hash",
     "rayaccel.bvh.traverse.wide",
+    "rayaccel.bvh.traverse.packet",
     "rayaccel.kdtree.builders.sah",
     "rayaccel.kdtree.builders.median",
     "rayaccel.kdtree.traverse.stack",
@@ -171,14 +172,26 @@ def default_traversal(structure: str) -> str:
 #: and other cameras of the benchmark scenes (docs/performance.md, "The default
 #: query traversal").
 FASTEST_TRAVERSAL = {"bvh2": "bvh2.wide"}
+#: The traversal a query uses when it names none and its batch is coherent: faster than
+#: :data:`FASTEST_TRAVERSAL` on camera and shadow rays, slower on diffuse bounces
+#: (docs/performance.md, "Packets for coherent rays").
+COHERENT_TRAVERSAL = {"bvh2": "bvh2.packet"}
+#: The share of coherent packets (:func:`rayaccel.rays.coherence.packet_coherence`) from
+#: which a batch counts as coherent.
+COHERENT_SHARE = 0.5
 
 
-def query_traversal(structure: str) -> str:
+def query_traversal(structure: str, coherence: float | None = None) -> str:
     """Return the traversal ``Accel.trace``, ``intersect`` and ``occluded`` use by default.
 
-    The fastest correct CPU traversal of ``structure`` (:data:`FASTEST_TRAVERSAL`), else
-    its default traversal.
+    For a batch whose ``coherence`` (the share of its packets that are coherent, when
+    measured) reaches :data:`COHERENT_SHARE`, the structure's packet traversal
+    (:data:`COHERENT_TRAVERSAL`); otherwise the fastest correct CPU traversal of
+    ``structure`` (:data:`FASTEST_TRAVERSAL`), else its default traversal.
     """
+    coherent = COHERENT_TRAVERSAL.get(structure)
+    if coherent is not None and coherence is not None and coherence >= COHERENT_SHARE:
+        return coherent
     fastest = FASTEST_TRAVERSAL.get(structure)
     if fastest is not None and get(fastest, "traversal").structure == structure:
         return fastest

@@ -1,0 +1,163 @@
+"""``bvh2.packet``: the packet box test lane by lane, mixed packets, and the default's choice."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import rayaccel
+import reference
+from rayaccel import registry
+from rayaccel._jit import cpu_kernel
+from rayaccel.bench.raysets import standard_raysets
+from rayaccel.kernels.aabb import ray_box_entry
+from rayaccel.kernels.aabb_packet import (
+    HI_ROW,
+    LO_ROW,
+    PACKET,
+    copy_lane_row,
+    lanes_at_most,
+    packet_slab_test8,
+)
+from rayaccel.rays.batch import RayBatch
+from rayaccel.rays.coherence import packet_coherence
+
+_OUT = 8
+
+
+@cpu_kernel()
+def _both_tests(rows, origin, inv, t_lo, t_hi, lanes, packet_t, packet_mask, scalar_t):
+    """Each packet of rays (one octant) against every box: the packet test and the scalar one."""
+    for p in range(origin.shape[0] // PACKET):
+        first = p * PACKET
+        for lane in range(PACKET):
+            r = first + lane
+            for a in range(3):
+                lanes[a, lane] = origin[r, a]
+                lanes[3 + a, lane] = inv[r, a]
+            lanes[LO_ROW, lane] = t_lo[r]
+            lanes[HI_ROW, lane] = t_hi[r]
+        nx = 0 if inv[first, 0] >= 0 else 1
+        ny = 2 if inv[first, 1] >= 0 else 3
+        nz = 4 if inv[first, 2] >= 0 else 5
+        fx, fy, fz = 1 - nx, 5 - ny, 9 - nz
+        for w in range(rows.shape[0]):
+            packet_mask[p, w] = packet_slab_test8(rows, w, nx, fx, ny, fy, nz, fz, lanes, _OUT)
+            for lane in range(PACKET):
+                r = first + lane
+                packet_t[r, w] = lanes[_OUT, lane]
+                scalar_t[r, w] = ray_box_entry(
+                    origin[r, 0], origin[r, 1], origin[r, 2], inv[r, 0], inv[r, 1], inv[r, 2],
+                    rows[w, nx], rows[w, ny], rows[w, nz], rows[w, fx], rows[w, fy], rows[w, fz],
+                    t_lo[r], t_hi[r],
+                )  # fmt: skip
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_packet_slab_test_matches_the_scalar_one_lane_by_lane(dtype):
+    rng = np.random.default_rng(1)
+    n_rows, n_packets = 64, 40
+    lo = rng.uniform(-2, 1, (n_rows, 3)).astype(np.float32)
+    hi = (lo + rng.uniform(0, 2, lo.shape)).astype(np.float32)
+    hi[::5, 0] = lo[::5, 0]  # flat boxes
+    rows = np.zeros((n_rows, 6), np.float32)
+    rows[:, 0::2] = lo
+    rows[:, 1::2] = hi
+    n = n_packets * PACKET
+    origin = rng.uniform(-3, 3, (n, 3)).astype(dtype)
+    # Each packet's rays share their direction signs (an octant), as the traversal's do.
+    signs = np.repeat(rng.choice([-1.0, 1.0], (n_packets, 3)), PACKET, axis=0)
+    direction = (np.abs(rng.normal(size=(n, 3))) * signs).astype(dtype)
+    direction[::4, 0] = 0.0  # +0: inv = +inf, the packet's sign
+    direction[1::8, 1] = np.where(signs[1::8, 1] < 0, -0.0, 0.0)
+    origin[::9, 0] = lo[0, 0]  # origins in a slab plane (0 * inf = NaN)
+    with np.errstate(divide="ignore"):
+        inv = (dtype(1.0) / direction).astype(dtype)
+    t_lo = rng.uniform(0, 0.5, n).astype(dtype)
+    t_hi = np.where(rng.random(n) < 0.5, np.inf, rng.uniform(0.5, 5, n)).astype(dtype)
+    t_hi[::7] = -np.inf  # retired lanes never hit
+    lanes = np.zeros((_OUT + 1, PACKET), dtype)
+    packet_t = np.empty((n, n_rows), dtype)
+    scalar_t = np.empty_like(packet_t)
+    mask = np.empty((n_packets, n_rows), np.int32)
+    _both_tests(rows, origin, inv, t_lo, t_hi, lanes, packet_t, mask, scalar_t)
+    assert np.array_equal(packet_t, scalar_t)
+    bits = (mask[:, None, :] >> np.arange(PACKET)[None, :, None]) & 1
+    assert np.array_equal(bits.reshape(n, n_rows) == 1, packet_t < np.inf)
+    assert not (packet_t[::7] < np.inf).any()
+    assert 200 < (packet_t < np.inf).sum() < packet_t.size // 2
+
+
+@cpu_kernel()
+def _row_ops(lanes, row, bound_row, source, target):
+    copy_lane_row(lanes, source, target)
+    return lanes_at_most(lanes, row, bound_row)
+
+
+def test_lane_row_compare_and_copy():
+    lanes = np.zeros((4, PACKET), np.float32)
+    lanes[0] = np.arange(PACKET)
+    lanes[1] = 7.0
+    lanes[1, 3] = np.nan  # unordered: not "at most"
+    mask = _row_ops(lanes, 0, 1, 0, 2)
+    assert mask == 0b11110111
+    assert np.array_equal(lanes[2], lanes[0])
+
+
+def _mixed_packets(mesh: rayaccel.TriangleMesh, n: int, seed: int) -> RayBatch:
+    """Rays from inside the scene box; every packet mixes octants, lengths and a degenerate ray."""
+    rng = np.random.default_rng(seed)
+    lo, hi = mesh.bounds()
+    origin = rng.uniform(lo, hi, (n, 3)).astype(np.float32)
+    direction = rng.normal(size=(n, 3)).astype(np.float32)
+    direction[5::PACKET] = 0.0  # a degenerate ray in every packet
+    tmax = np.where(rng.random(n) < 0.3, rng.uniform(0.01, 1.0, n), np.inf).astype(np.float32)
+    return RayBatch(origin, direction, 0.0, tmax)
+
+
+@pytest.mark.parametrize("scene", ["cornell-box", "teapot"])
+def test_mixed_octant_packets_match_the_oracle(scene):
+    """Packets whose rays go every way traverse octant by octant and lose nothing."""
+    mesh = rayaccel.scenes.get(scene)
+    accel = rayaccel.build(mesh)
+    rays = _mixed_packets(mesh, 50 * PACKET + 5, seed=3)  # a partial last packet
+    oracle = reference.oracle(mesh, rays)
+    tri = reference.tri9(mesh)
+    closest = accel.trace(rays, traversal="bvh2.packet")
+    reference.assert_closest_matches(tri, rays, closest, oracle, "bvh2.packet")
+    occluded = accel.trace(rays, traversal="bvh2.packet", query="any")
+    reference.assert_any_matches(tri, rays, occluded, oracle, "bvh2.packet")
+
+
+def test_default_query_takes_packets_for_coherent_batches_only():
+    mesh = rayaccel.scenes.get("cornell-box")
+    accel = rayaccel.build(mesh)
+    sets = standard_raysets(mesh, "cornell-box", width=256, height=256, accel=accel)
+    primary, diffuse = sets["primary"].rays, sets["diffuse"].rays
+    assert accel.query_traversal(primary) == "bvh2.packet"
+    assert accel.query_traversal(diffuse) == "bvh2.wide"
+    assert accel.query_traversal(primary.subset(np.arange(10))) == "bvh2.wide"  # < 1 packet
+    for rays in (primary, diffuse):
+        default = accel.trace(rays)
+        chosen = accel.trace(rays, traversal=accel.query_traversal(rays))
+        reference.assert_hits_identical(default, chosen, "default")
+    # Options belong to the single-ray traversal: with them, no choice is made.
+    assert registry.query_traversal("bvh2") == "bvh2.wide"
+    narrow = accel.trace(primary, width=4)
+    reference.assert_hits_identical(narrow, accel.trace(primary, traversal="bvh2.wide", width=4))
+
+
+def test_coherence_of_batches():
+    mesh = rayaccel.scenes.get("teapot")
+    accel = rayaccel.build(mesh)
+    sets = standard_raysets(mesh, "teapot", width=128, height=128, accel=accel)
+    lo, hi = mesh.bounds()
+    diagonal = float(np.linalg.norm(hi - lo))
+    primary = sets["primary"].rays
+    assert packet_coherence(primary, diagonal) > 0.9
+    assert packet_coherence(sets["diffuse"].rays, diagonal) < 0.1
+    shuffled = primary.subset(np.random.default_rng(0).permutation(primary.n_rays))
+    assert packet_coherence(shuffled, diagonal) < 0.1
+    nan = RayBatch(primary.origin, np.full_like(primary.direction, np.nan), 0.0, np.inf)
+    assert packet_coherence(nan, diagonal) == 0.0
+    assert packet_coherence(primary.subset(np.arange(PACKET - 1)), diagonal) == 0.0
