@@ -19,6 +19,17 @@ from rayaccel.kernels.aabb_packet import (
     lanes_at_most,
     packet_slab_test8,
 )
+from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup
+from rayaccel.kernels.triangle_packet import (
+    ROWS,
+    SHEAR,
+    SHEARED_ORIGIN,
+    T_HIT,
+    T_LO,
+    U,
+    V,
+    packet_triangle,
+)
 from rayaccel.rays.batch import RayBatch
 from rayaccel.rays.coherence import packet_coherence
 
@@ -161,3 +172,71 @@ def test_coherence_of_batches():
     nan = RayBatch(primary.origin, np.full_like(primary.direction, np.nan), 0.0, np.inf)
     assert packet_coherence(nan, diagonal) == 0.0
     assert packet_coherence(primary.subset(np.arange(PACKET - 1)), diagonal) == 0.0
+
+
+@cpu_kernel()
+def _triangle_tests(tri, origin, direction, t_lo, t_hit, lanes, packet_out, scalar_out):
+    """Every triangle against each packet: the packet test and the scalar one, lane by lane."""
+    for p in range(origin.shape[0] // PACKET):
+        first = p * PACKET
+        kx, ky, kz, _, _, _ = ray_triangle_setup(
+            direction[first, 0], direction[first, 1], direction[first, 2]
+        )
+        for row in range(tri.shape[0]):
+            for lane in range(PACKET):
+                r = first + lane
+                _, _, _, Sx, Sy, Sz = ray_triangle_setup(
+                    direction[r, 0], direction[r, 1], direction[r, 2]
+                )
+                lanes[T_LO, lane] = t_lo[r]
+                lanes[T_HIT, lane] = t_hit[r]
+                lanes[SHEAR, lane] = Sx
+                lanes[SHEAR + 1, lane] = Sy
+                lanes[SHEAR + 2, lane] = Sz
+                lanes[SHEARED_ORIGIN, lane] = origin[r, kx]
+                lanes[SHEARED_ORIGIN + 1, lane] = origin[r, ky]
+                lanes[SHEARED_ORIGIN + 2, lane] = origin[r, kz]
+                lanes[U, lane] = -1.0
+                lanes[V, lane] = -1.0
+                t, u, v = ray_triangle(
+                    tri, row, origin[r, kx], origin[r, ky], origin[r, kz], kx, ky, kz,
+                    Sx, Sy, Sz, t_lo[r], t_hit[r],
+                )  # fmt: skip
+                scalar_out[r, row, 0] = t if t < t_hit[r] else t_hit[r]
+                scalar_out[r, row, 1] = u if t < t_hit[r] else -1.0
+                scalar_out[r, row, 2] = v if t < t_hit[r] else -1.0
+            mask = packet_triangle(tri, row, kx, ky, kz, lanes, 0, 0xAAAA | 0x5555)
+            for lane in range(PACKET):
+                r = first + lane
+                packet_out[r, row, 0] = lanes[T_HIT, lane]
+                packet_out[r, row, 1] = lanes[U, lane]
+                packet_out[r, row, 2] = lanes[V, lane]
+                packet_out[r, row, 3] = (mask >> lane) & 1
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_packet_triangle_test_matches_the_scalar_one_lane_by_lane(dtype):
+    """Same ``t, u, v`` bit for bit, including edges shared by two triangles and misses."""
+    rng = np.random.default_rng(2)
+    n_packets = 24
+    grid = rng.integers(-4, 5, (40, 3, 3)).astype(np.float32) / 4  # coarse: exact edge cases
+    tri = np.concatenate([grid, rng.normal(size=(40, 3, 3)).astype(np.float32)])
+    tri[5, 2] = tri[5, 0]  # degenerate
+    rows = tri.reshape(-1, 9).astype(dtype)
+    n = n_packets * PACKET
+    # Rays of a packet share their shear axes: a common dominant axis and its sign.
+    dominant = np.repeat(rng.integers(0, 3, n_packets), PACKET)
+    direction = rng.uniform(-0.5, 0.5, (n, 3))
+    direction[np.arange(n), dominant] = np.repeat(rng.choice([-1.0, 1.0], n_packets), PACKET)
+    direction = direction.astype(dtype)
+    origin = (rng.integers(-8, 9, (n, 3)) / 4 - 3 * direction).astype(dtype)
+    t_lo = np.where(rng.random(n) < 0.2, 2.5, 0.0).astype(dtype)
+    t_hit = np.where(rng.random(n) < 0.3, 3.5, np.inf).astype(dtype)
+    lanes = np.zeros((ROWS, PACKET), dtype)
+    packet_out = np.empty((n, rows.shape[0], 4), dtype)
+    scalar_out = np.empty((n, rows.shape[0], 3), dtype)
+    _triangle_tests(rows, origin, direction, t_lo, t_hit, lanes, packet_out, scalar_out)
+    assert np.array_equal(packet_out[..., :3], scalar_out)
+    hit = packet_out[..., 3] == 1
+    assert np.array_equal(hit, scalar_out[..., 1] >= 0)
+    assert 300 < hit.sum() < hit.size // 2

@@ -52,6 +52,16 @@ from rayaccel.kernels.aabb_packet import (
     packet_slab_test8,
 )
 from rayaccel.kernels.triangle import ray_triangle
+from rayaccel.kernels.triangle_packet import ROWS as TRIANGLE_ROWS
+from rayaccel.kernels.triangle_packet import (
+    SHEAR,
+    SHEARED_ORIGIN,
+    T_HIT,
+    T_LO,
+    U,
+    V,
+    packet_triangle,
+)
 from rayaccel.queries import QUERY_ANY
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.trace.ray_setup import ray_prologue, root_entry
@@ -68,14 +78,15 @@ _STACK_ENTRY_BYTES = 8 + 4 * PACKET
 # iz, lo, hi): the rays' culling pads, intervals, shear constants, sheared origins,
 # hit coordinates, the two children's entry distances, then the stack's.
 _PAD = 8
-_T_LO = 9
-_T_HIT = 10
-_SHEAR = 11
-_SHEARED_ORIGIN = 14
-_U = 17
-_V = 18
-_CHILD = 19
-_STACK = 21
+_TRIANGLE = 9  # the rows packet_triangle reads and writes, from here on
+_T_LO = _TRIANGLE + T_LO
+_T_HIT = _TRIANGLE + T_HIT
+_SHEAR = _TRIANGLE + SHEAR
+_SHEARED_ORIGIN = _TRIANGLE + SHEARED_ORIGIN
+_U = _TRIANGLE + U
+_V = _TRIANGLE + V
+_CHILD = _TRIANGLE + TRIANGLE_ROWS
+_STACK = _CHILD + 2
 _ROWS = _STACK + STACK_SIZE
 # Columns of a worker's integer lane array: the shear axes, the hit primitive, the
 # octant, then the counters (with statistics).
@@ -183,13 +194,50 @@ def setup_packet_py(bvh, origin, direction, tmin, tmax, p0, n_lanes, lanes, lane
 setup_packet = cpu_inline(setup_packet_py)
 
 
+def leaf_packet_py(bvh, first, count, mask, axes, lanes, lane_int, stop_at_first, with_stats):
+    """:func:`leaf_lanes_py` for rays sharing their shear ``axes``: a vector test per triangle."""
+    retired = 0
+    last = first + count
+    testing = mask
+    for i in range(first, last):
+        hit = packet_triangle(bvh.tri, i, axes[0], axes[1], axes[2], lanes, _TRIANGLE, testing)
+        if hit == 0:
+            continue
+        for lane in range(PACKET):
+            if (hit >> lane) & 1:
+                lane_int[lane, _PRIM] = bvh.tri_prim[i]
+                if stop_at_first and with_stats:
+                    lane_int[lane, _PRIMS] += i - first + 1
+        if stop_at_first:
+            retired |= hit
+            testing &= ~hit
+            if testing == 0:
+                break
+    for lane in range(PACKET):
+        if (mask >> lane) & 1:
+            lanes[HI_ROW, lane] = lanes[_T_HIT, lane] + lanes[_PAD, lane]
+            if (retired >> lane) & 1:
+                lanes[HI_ROW, lane] = -np.inf
+            elif with_stats:
+                lane_int[lane, _PRIMS] += count
+            if with_stats:
+                lane_int[lane, _NODES] += 1
+    if with_stats:
+        share(lane_int, mask, _BYTES, _PRIM_BYTES * count * popcount(mask))
+    return retired
+
+
+leaf_packet = cpu_inline(leaf_packet_py)
+
+
 def leaf_lanes_py(bvh, first, count, mask, lanes, lane_int, stop_at_first, with_stats):
     """Test triangles ``first:first + count`` for the rays of ``mask``; return the retired ones.
 
     Each ray keeps its nearest hit (a triangle replaces it only when strictly nearer,
     as :func:`rayaccel.trace.leaf.intersect_leaf_py`) and its culling bound ``hi``
     follows; with ``stop_at_first`` a ray that hits is retired (``hi = -inf``) and its
-    bit is set in the returned mask.
+    bit is set in the returned mask. One ray at a time: for rays whose shear axes
+    differ.
     """
     retired = 0
     last = first + count
@@ -262,6 +310,14 @@ def trace_rays_py(
                     # Out of this descent: no box test passes for ``hi = -inf``.
                     lanes[HI_ROW, lane] = -np.inf
             pending &= ~group
+            # Rays sharing the lead's shear axes test a leaf's triangles as one packet.
+            axes = (lane_int[lead, _AXES], lane_int[lead, _AXES + 1], lane_int[lead, _AXES + 2])
+            shared_axes = True
+            for lane in range(PACKET):
+                if (group >> lane) & 1 and (
+                    lane_int[lane, _AXES] != axes[0] or lane_int[lane, _AXES + 1] != axes[1]
+                ):
+                    shared_axes = False
             nx = octant & 1
             ny = 2 + ((octant >> 1) & 1)
             nz = 4 + ((octant >> 2) & 1)
@@ -331,9 +387,16 @@ def trace_rays_py(
                         for lane in range(PACKET):
                             if (mask >> lane) & 1:
                                 lane_int[lane, _STEPS] += 1
-                    retired = leaf_lanes(
-                        bvh, ~node, count, mask, lanes, lane_int, query == QUERY_ANY, with_stats
-                    )
+                    if shared_axes:
+                        retired = leaf_packet(
+                            bvh, ~node, count, mask, axes, lanes, lane_int, query == QUERY_ANY,
+                            with_stats,
+                        )  # fmt: skip
+                    else:
+                        retired = leaf_lanes(
+                            bvh, ~node, count, mask, lanes, lane_int, query == QUERY_ANY,
+                            with_stats,
+                        )  # fmt: skip
                     if query == QUERY_ANY:
                         alive &= ~retired
                         if alive == 0:
