@@ -137,7 +137,7 @@ def share_py(lane_int, mask, column, amount):
 share = cpu_inline(share_py)
 
 
-def setup_packet_py(bvh, origin, direction, tmin, tmax, p0, n_lanes, lanes, lane_int):
+def setup_packet_py(bvh, origin, direction, tmin, tmax, p0, n_lanes, lanes, lane_int, with_stats):
     """Compute the per-ray constants of rays ``p0:p0 + n_lanes``; return the lanes to trace.
 
     Lanes of degenerate rays and past ``n_lanes`` stay out of the returned mask. The
@@ -149,8 +149,9 @@ def setup_packet_py(bvh, origin, direction, tmin, tmax, p0, n_lanes, lanes, lane
         lanes[LO_ROW, lane] = 0
         lanes[HI_ROW, lane] = -np.inf
         lane_int[lane, _PRIM] = -1
-        for k in range(_STEPS, _INT_COLUMNS):
-            lane_int[lane, k] = 0
+        if with_stats:
+            for k in range(_STEPS, _INT_COLUMNS):
+                lane_int[lane, k] = 0
         if lane >= n_lanes:
             continue
         (
@@ -180,7 +181,8 @@ def setup_packet_py(bvh, origin, direction, tmin, tmax, p0, n_lanes, lanes, lane
         lane_int[lane, _OCTANT] = nx + (ny - 2) * 2 + (nz - 4) * 4
         if valid and bvh.root_ref[0] < 0:
             # A leaf root has no row to test the scene box with: test it here.
-            lane_int[lane, _BOX] = 1
+            if with_stats:
+                lane_int[lane, _BOX] = 1
             entry = root_entry(
                 bvh.root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
                 t_lo - pad, t_hit + pad,
@@ -295,7 +297,9 @@ def trace_rays_py(
     n_overflowed = 0
     for p0 in range(begin, end, PACKET):
         n_lanes = min(PACKET, end - p0)
-        pending = setup_packet(bvh, origin, direction, tmin, tmax, p0, n_lanes, lanes, lane_int)
+        pending = setup_packet(
+            bvh, origin, direction, tmin, tmax, p0, n_lanes, lanes, lane_int, with_stats
+        )
         while pending != 0:
             # The rays of the lowest pending ray's octant traverse together.
             lead = trailing_zeros(pending)
