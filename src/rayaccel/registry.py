@@ -174,7 +174,7 @@ def default_traversal(structure: str) -> str:
 FASTEST_TRAVERSAL = {"bvh2": "bvh2.wide"}
 #: The traversal a query uses when it names none and its batch is coherent: faster than
 #: :data:`FASTEST_TRAVERSAL` on camera and shadow rays, slower on diffuse bounces
-#: (docs/performance.md, "Packets for coherent rays").
+#: (docs/performance.md, "The default query traversal").
 COHERENT_TRAVERSAL = {"bvh2": "bvh2.packet"}
 #: The share of coherent packets (:func:`rayaccel.rays.coherence.packet_coherence`) from
 #: which a batch counts as coherent.
