@@ -10,15 +10,8 @@ import reference
 from rayaccel import registry
 from rayaccel._jit import cpu_kernel
 from rayaccel.bench.raysets import standard_raysets
+from rayaccel.kernels import aabb_packet
 from rayaccel.kernels.aabb import ray_box_entry
-from rayaccel.kernels.aabb_packet import (
-    HI_ROW,
-    LO_ROW,
-    PACKET,
-    copy_lane_row,
-    lanes_at_most,
-    packet_slab_test8,
-)
 from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup
 from rayaccel.kernels.triangle_packet import (
     ROWS,
@@ -33,6 +26,7 @@ from rayaccel.kernels.triangle_packet import (
 from rayaccel.rays.batch import RayBatch
 from rayaccel.rays.coherence import packet_coherence
 
+PACKET = aabb_packet.PACKET
 _OUT = 8
 
 
@@ -46,14 +40,16 @@ def _both_tests(rows, origin, inv, t_lo, t_hi, lanes, packet_t, packet_mask, sca
             for a in range(3):
                 lanes[a, lane] = origin[r, a]
                 lanes[3 + a, lane] = inv[r, a]
-            lanes[LO_ROW, lane] = t_lo[r]
-            lanes[HI_ROW, lane] = t_hi[r]
+            lanes[aabb_packet.LO_ROW, lane] = t_lo[r]
+            lanes[aabb_packet.HI_ROW, lane] = t_hi[r]
         nx = 0 if inv[first, 0] >= 0 else 1
         ny = 2 if inv[first, 1] >= 0 else 3
         nz = 4 if inv[first, 2] >= 0 else 5
         fx, fy, fz = 1 - nx, 5 - ny, 9 - nz
         for w in range(rows.shape[0]):
-            packet_mask[p, w] = packet_slab_test8(rows, w, nx, fx, ny, fy, nz, fz, lanes, _OUT)
+            packet_mask[p, w] = aabb_packet.packet_slab_test(
+                rows, w, nx, fx, ny, fy, nz, fz, lanes, _OUT
+            )
             for lane in range(PACKET):
                 r = first + lane
                 packet_t[r, w] = lanes[_OUT, lane]
@@ -101,8 +97,8 @@ def test_packet_slab_test_matches_the_scalar_one_lane_by_lane(dtype):
 
 @cpu_kernel()
 def _row_ops(lanes, row, bound_row, source, target):
-    copy_lane_row(lanes, source, target)
-    return lanes_at_most(lanes, row, bound_row)
+    aabb_packet.copy_lane_row(lanes, source, target)
+    return aabb_packet.lanes_at_most(lanes, row, bound_row)
 
 
 def test_lane_row_compare_and_copy():

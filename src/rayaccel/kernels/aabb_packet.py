@@ -1,20 +1,20 @@
-"""One box against a packet of eight rays, as explicit LLVM vector code.
+"""One box against a packet of sixteen rays, as explicit LLVM vector code.
 
 The transpose of :mod:`rayaccel.kernels.aabb_wide`: there one ray meets the N boxes of
-a wide row, here one box meets eight rays (Wald, Slusallek, Benthin, Wagner 2001,
+a wide row, here one box meets sixteen rays (Wald, Slusallek, Benthin, Wagner 2001,
 "Interactive Rendering with Coherent Ray Tracing": a packet of rays shares each node
 fetch and each box test is one SIMD operation over the packet). The rays of a packet
 share the signs of their directions, so they share the near and far plane columns of
-the box (Williams et al. 2005); each plane is one scalar load, broadcast to the eight
+the box (Williams et al. 2005); each plane is one scalar load, broadcast to the
 lanes. The arithmetic per lane is exactly the scalar test's
 (:func:`rayaccel.kernels.aabb.ray_box_entry_py`: the robust slab test, Ize 2013 2-ulp
 exit widening, NaN never tightening a bound), so a lane's answer is the single ray's
 bit for bit (the tests check it lane by lane).
 
-:data:`packet_slab_test8` ``(box, row, near_x, far_x, near_y, far_y, near_z, far_z,
+:data:`packet_slab_test` ``(box, row, near_x, far_x, near_y, far_y, near_z, far_z,
 lanes, out_row) -> int32``: ``box`` is a 2D float32 array; ``lanes`` is a 2D array of
 the rays' precision (float32, or float64 for float64 rays, in which case the planes
-are widened exactly and the test runs in ``<8 x double>``) whose rows 0 to 7 hold
+are widened exactly and the test runs in ``<16 x double>``) whose rows 0 to 7 hold
 the packet's ``ox, oy, oz, ix, iy, iz`` and the interval ``lo, hi`` of each lane;
 lane ``i`` of ``lanes[out_row]`` gets ``max(lo, entry)`` when the box is hit within
 ``[lo, hi]`` and ``inf`` otherwise, and bit ``i`` of the result is set for a hit. A
@@ -30,7 +30,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from rayaccel.kernels.aabb import TWO_ULP
+from rayaccel.kernels.aabb_wide import emit_slab_test, splat
 
 #: Rays of a packet (one AVX register of float32 lanes).
 PACKET = 16
@@ -42,29 +42,15 @@ HI_ROW = 7
 
 
 def _packet_codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-    """Emit the eight-lane slab test (see the module docstring)."""
+    """Emit the packet's slab test (see the module docstring)."""
     box_type = signature.args[0]
     lanes_type = signature.args[8]
     real = lanes_type.dtype
     float_type = context.get_value_type(real)
     vec_type = ir.VectorType(float_type, PACKET)
-    suffix = "f64" if real == types.float64 else "f32"
     box_view = context.make_array(box_type)(context, builder, args[0])
-    lanes_view = context.make_array(lanes_type)(context, builder, args[8])
     row_index = context.cast(builder, args[1], signature.args[1], types.intp)
-    zero = context.get_constant(types.intp, 0)
-
-    def splat(value: Any) -> Any:
-        vec = ir.Constant(vec_type, ir.Undefined)
-        for lane in range(PACKET):
-            vec = builder.insert_element(vec, value, ir.Constant(ir.IntType(32), lane))
-        return vec
-
-    def lane_pointer(row: Any) -> Any:
-        pointer = cgutils.get_item_pointer(
-            context, builder, lanes_type, lanes_view, [row, zero], wraparound=False
-        )
-        return builder.bitcast(pointer, vec_type.as_pointer())
+    lane_pointer = lane_row_pointer(context, builder, lanes_type, args[8])
 
     def lane_row(row: int) -> Any:
         return builder.load(lane_pointer(context.get_constant(types.intp, row)), align=4)
@@ -76,32 +62,16 @@ def _packet_codegen(context: Any, builder: Any, signature: Any, args: Any) -> An
         )
         value = builder.load(pointer)
         # float32 planes against float64 rays: widen exactly (fpext is exact).
-        return splat(value if real == types.float32 else builder.fpext(value, float_type))
+        wide = value if real == types.float32 else builder.fpext(value, float_type)
+        return splat(builder, vec_type, wide)
 
-    def take_if(cond: str, candidate: Any, current: Any) -> Any:
-        # Ordered compare: a NaN lane keeps ``current`` (no constraint).
-        keep = builder.fcmp_ordered(cond, candidate, current)
-        return builder.select(keep, candidate, current)
-
-    inf = splat(ir.Constant(float_type, float("inf")))
-    enter = lane_row(LO_ROW)
-    leave = inf
-    # Per axis: distances to the near and far planes; entry = max, exit = min.
-    for axis in range(3):
-        origin = lane_row(ORIGIN_ROW + axis)
-        inverse = lane_row(INVERSE_ROW + axis)
-        near = builder.fmul(builder.fsub(plane(2 + 2 * axis), origin), inverse)
-        far = builder.fmul(builder.fsub(plane(3 + 2 * axis), origin), inverse)
-        enter = take_if(">", near, enter)
-        leave = take_if("<", far, leave)
-    # Widen the exit by 2 ulp (Ize 2013), clamp to the interval, keep hit lanes.
-    fabs = cgutils.get_or_insert_function(
-        builder.module, ir.FunctionType(vec_type, [vec_type]), f"llvm.fabs.v{PACKET}{suffix}"
-    )
-    widening = splat(ir.Constant(float_type, float(TWO_ULP)))
-    leave = builder.fadd(leave, builder.fmul(builder.call(fabs, [leave]), widening))
-    leave = take_if("<", lane_row(HI_ROW), leave)
-    hit = builder.fcmp_ordered("<=", enter, leave)
+    inf = splat(builder, vec_type, ir.Constant(float_type, float("inf")))
+    origins = [lane_row(ORIGIN_ROW + axis) for axis in range(3)]
+    inverses = [lane_row(INVERSE_ROW + axis) for axis in range(3)]
+    enter, hit = emit_slab_test(
+        builder, vec_type, lane_row(LO_ROW), lane_row(HI_ROW),
+        lambda k: plane(2 + k), origins.__getitem__, inverses.__getitem__,
+    )  # fmt: skip
     out_row = context.cast(builder, args[9], signature.args[9], types.intp)
     builder.store(builder.select(hit, enter, inf), lane_pointer(out_row), align=4)
     # Lane i of the mask is bit i (one movmskps).
@@ -109,11 +79,11 @@ def _packet_codegen(context: Any, builder: Any, signature: Any, args: Any) -> An
 
 
 @intrinsic
-def packet_slab_test8(
+def packet_slab_test(
     typingctx: Any, box: Any, row: Any, near_x: Any, far_x: Any, near_y: Any, far_y: Any,
     near_z: Any, far_z: Any, lanes: Any, out_row: Any,
 ) -> Any:  # fmt: skip
-    """Eight rays against one box in ``<8 x float>`` vectors (see the module docstring)."""
+    """Sixteen rays against one box in ``<16 x float>`` vectors (see the module docstring)."""
     if box.dtype != types.float32 or lanes.dtype not in (types.float32, types.float64):
         raise TypeError("packet slab test: float32 boxes and float32 or float64 lanes expected")
     if box.ndim != 2 or lanes.ndim != 2 or lanes.layout != "C":
@@ -122,8 +92,8 @@ def packet_slab_test8(
     return types.int32(box, *columns, lanes, out_row), _packet_codegen
 
 
-def _lane_rows(context: Any, builder: Any, lanes_type: Any, lanes_value: Any) -> Any:
-    """Return ``pointer(row)``: the ``<8 x real>*`` of row ``row`` of a lane array."""
+def lane_row_pointer(context: Any, builder: Any, lanes_type: Any, lanes_value: Any) -> Any:
+    """Return ``pointer(row)``: the ``<16 x real>*`` of row ``row`` of a lane array."""
     view = context.make_array(lanes_type)(context, builder, lanes_value)
     vec_type = ir.VectorType(context.get_value_type(lanes_type.dtype), PACKET)
     zero = context.get_constant(types.intp, 0)
@@ -152,7 +122,7 @@ def lanes_at_most(typingctx: Any, lanes: Any, row: Any, bound_row: Any) -> Any:
     _check_lanes(lanes)
 
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        pointer = _lane_rows(context, builder, signature.args[0], args[0])
+        pointer = lane_row_pointer(context, builder, signature.args[0], args[0])
         rows = [context.cast(builder, args[i], signature.args[i], types.intp) for i in (1, 2)]
         value, bound = (builder.load(pointer(r), align=4) for r in rows)
         at_most = builder.fcmp_ordered("<=", value, bound)
@@ -167,7 +137,7 @@ def copy_lane_row(typingctx: Any, lanes: Any, source: Any, target: Any) -> Any:
     _check_lanes(lanes)
 
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        pointer = _lane_rows(context, builder, signature.args[0], args[0])
+        pointer = lane_row_pointer(context, builder, signature.args[0], args[0])
         rows = [context.cast(builder, args[i], signature.args[i], types.intp) for i in (1, 2)]
         builder.store(builder.load(pointer(rows[0]), align=4), pointer(rows[1]), align=4)
         return context.get_dummy_value()

@@ -28,6 +28,7 @@ it lane by lane); bit ``i`` of the result is set for a hit.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from llvmlite import ir
@@ -36,6 +37,57 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from rayaccel.kernels.aabb import TWO_ULP
+
+
+def splat(builder: Any, vec_type: Any, value: Any) -> Any:
+    """Return a vector of ``vec_type`` with ``value`` in every lane."""
+    vec = ir.Constant(vec_type, ir.Undefined)
+    for lane in range(vec_type.count):
+        vec = builder.insert_element(vec, value, ir.Constant(ir.IntType(32), lane))
+    return vec
+
+
+def emit_slab_test(
+    builder: Any,
+    vec_type: Any,
+    lo: Any,
+    hi: Any,
+    plane: Callable[[int], Any],
+    origin: Callable[[int], Any],
+    inverse: Callable[[int], Any],
+) -> tuple[Any, Any]:
+    """Emit the robust slab test on vectors; return the entry distances and the hit lanes.
+
+    ``plane(k)`` gives the near (``k = 2 * axis``) and far (``2 * axis + 1``) planes,
+    ``origin(axis)`` and ``inverse(axis)`` the rays', ``lo``/``hi`` the interval, all as
+    vectors of ``vec_type`` (a box's lanes against one ray here, one box against a
+    packet's rays in :mod:`rayaccel.kernels.aabb_packet`). The operations are the scalar
+    test's (:func:`rayaccel.kernels.aabb.ray_box_entry_py`), in the same order.
+    """
+
+    def take_if(cond: str, candidate: Any, current: Any) -> Any:
+        # Ordered compare: a NaN lane keeps ``current`` (no constraint).
+        keep = builder.fcmp_ordered(cond, candidate, current)
+        return builder.select(keep, candidate, current)
+
+    float_type = vec_type.element
+    enter = lo
+    leave = splat(builder, vec_type, ir.Constant(float_type, float("inf")))
+    # Per axis: distances to the near and far planes; entry = max, exit = min.
+    for axis in range(3):
+        near = builder.fmul(builder.fsub(plane(2 * axis), origin(axis)), inverse(axis))
+        far = builder.fmul(builder.fsub(plane(2 * axis + 1), origin(axis)), inverse(axis))
+        enter = take_if(">", near, enter)
+        leave = take_if("<", far, leave)
+    # Widen the exit by 2 ulp (Ize 2013), clamp to the interval, keep hit lanes.
+    name = f"llvm.fabs.v{vec_type.count}{'f64' if isinstance(float_type, ir.DoubleType) else 'f32'}"
+    fabs = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(vec_type, [vec_type]), name
+    )
+    widening = splat(builder, vec_type, ir.Constant(float_type, float(TWO_ULP)))
+    leave = builder.fadd(leave, builder.fmul(builder.call(fabs, [leave]), widening))
+    leave = take_if("<", hi, leave)
+    return enter, builder.fcmp_ordered("<=", enter, leave)
 
 
 def _slab_codegen(lanes: int) -> Any:
@@ -49,19 +101,12 @@ def _slab_codegen(lanes: int) -> Any:
         vec_type = ir.VectorType(float_type, lanes)
         plane_type = ir.VectorType(context.get_value_type(box_type.dtype), lanes)
         out_vec_type = ir.VectorType(context.get_value_type(out_type.dtype), lanes)
-        suffix = "f64" if real == types.float64 else "f32"
         box_view = context.make_array(box_type)(context, builder, args[0])
         out_view = context.make_array(out_type)(context, builder, args[16])
         row_index = context.cast(builder, args[1], signature.args[1], types.intp)
 
-        def splat(value: Any) -> Any:
-            vec = ir.Constant(vec_type, ir.Undefined)
-            for lane in range(lanes):
-                vec = builder.insert_element(vec, value, ir.Constant(ir.IntType(32), lane))
-            return vec
-
         def scalar(i: int) -> Any:
-            return splat(context.cast(builder, args[i], signature.args[i], real))
+            return splat(builder, vec_type, context.cast(builder, args[i], signature.args[i], real))
 
         def plane(i: int) -> Any:
             column = context.cast(builder, args[i], signature.args[i], types.intp)
@@ -72,30 +117,11 @@ def _slab_codegen(lanes: int) -> Any:
             # float32 planes against float64 rays: widen exactly (fpext is exact).
             return loaded if plane_type == vec_type else builder.fpext(loaded, vec_type)
 
-        def take_if(cond: str, candidate: Any, current: Any) -> Any:
-            # Ordered compare: a NaN lane keeps ``current`` (no constraint).
-            keep = builder.fcmp_ordered(cond, candidate, current)
-            return builder.select(keep, candidate, current)
-
-        inf = splat(ir.Constant(float_type, float("inf")))
-        enter = scalar(14)
-        leave = inf
-        # Per axis: distances to the near and far planes; entry = max, exit = min.
-        for axis in range(3):
-            origin = scalar(8 + axis)
-            inverse = scalar(11 + axis)
-            near = builder.fmul(builder.fsub(plane(2 + 2 * axis), origin), inverse)
-            far = builder.fmul(builder.fsub(plane(3 + 2 * axis), origin), inverse)
-            enter = take_if(">", near, enter)
-            leave = take_if("<", far, leave)
-        # Widen the exit by 2 ulp (Ize 2013), clamp to the interval, keep hit lanes.
-        fabs = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(vec_type, [vec_type]), f"llvm.fabs.v{lanes}{suffix}"
-        )
-        widening = splat(ir.Constant(float_type, float(TWO_ULP)))
-        leave = builder.fadd(leave, builder.fmul(builder.call(fabs, [leave]), widening))
-        leave = take_if("<", scalar(15), leave)
-        hit = builder.fcmp_ordered("<=", enter, leave)
+        enter, hit = emit_slab_test(
+            builder, vec_type, scalar(14), scalar(15),
+            lambda k: plane(2 + k), lambda axis: scalar(8 + axis), lambda axis: scalar(11 + axis),
+        )  # fmt: skip
+        inf = splat(builder, vec_type, ir.Constant(float_type, float("inf")))
         zero = context.get_constant(types.intp, 0)
         out_pointer = cgutils.get_item_pointer(
             context, builder, out_type, out_view, [zero], wraparound=False

@@ -29,7 +29,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from rayaccel._jit import FASTMATH
-from rayaccel.kernels.aabb_packet import PACKET
+from rayaccel.kernels.aabb_packet import PACKET, lane_row_pointer
+from rayaccel.kernels.aabb_wide import splat
 
 # Rows of the packet's lane array from ``base`` on.
 T_LO = 0
@@ -54,27 +55,16 @@ def _codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
     vec64 = ir.VectorType(ir.DoubleType(), PACKET)
     i32 = ir.IntType(32)
     tri_view = context.make_array(tri_type)(context, builder, args[0])
-    lanes_view = context.make_array(lanes_type)(context, builder, args[5])
     row = context.cast(builder, args[1], signature.args[1], types.intp)
     axes = [context.cast(builder, args[i], signature.args[i], types.intp) for i in (2, 3, 4)]
     base = context.cast(builder, args[6], signature.args[6], types.intp)
-    zero = context.get_constant(types.intp, 0)
+    lane_pointer = lane_row_pointer(context, builder, lanes_type, args[5])
 
     def pointer(offset: int) -> Any:
-        at = builder.add(base, context.get_constant(types.intp, offset))
-        item = cgutils.get_item_pointer(
-            context, builder, lanes_type, lanes_view, [at, zero], wraparound=False
-        )
-        return builder.bitcast(item, vec.as_pointer())
+        return lane_pointer(builder.add(base, context.get_constant(types.intp, offset)))
 
     def load(offset: int) -> Any:
         return builder.load(pointer(offset), align=4)
-
-    def splat(value: Any, vector_type: Any) -> Any:
-        out = ir.Constant(vector_type, ir.Undefined)
-        for lane in range(PACKET):
-            out = builder.insert_element(out, value, ir.Constant(i32, lane))
-        return out
 
     def corner(vertex: int, axis: Any) -> Any:
         column = builder.add(axis, context.get_constant(types.intp, 3 * vertex))
@@ -83,7 +73,7 @@ def _codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
         )
         value = builder.load(item)
         same = tri_type.dtype == real
-        return splat(value if same else builder.fpext(value, float_type), vec)
+        return splat(builder, vec, value if same else builder.fpext(value, float_type))
 
     ok = [load(SHEARED_ORIGIN + k) for k in range(3)]
     sx, sy, sz = (load(SHEAR + k) for k in range(3))

@@ -1,22 +1,25 @@
-"""Packets of eight rays through a binary BVH (``bvh2.packet``).
+"""Packets of sixteen rays through a binary BVH (``bvh2.packet``).
 
 Wald, Slusallek, Benthin, Wagner 2001, "Interactive Rendering with Coherent Ray
 Tracing"; the masked descent of Wald, Boulos, Shirley 2007 ("Ray Tracing Deformable
-Scenes using Dynamic Bounding Volume Hierarchies", §4). Eight consecutive rays of a
+Scenes using Dynamic Bounding Volume Hierarchies", §4). Sixteen consecutive rays of a
 batch form a packet; rays whose directions have the same signs (an octant) traverse
 together: each inner row of the pairs layout (:mod:`rayaccel.bvh.layouts.pairs`, both
 children's boxes in 64 bytes) is fetched once for the packet and each child box is
-tested against the eight rays in one ``<8 x float>`` slab test
-(:data:`rayaccel.kernels.aabb_packet.packet_slab_test8`). The packet descends into a
+tested against the sixteen rays in one ``<16 x float>`` slab test
+(:data:`rayaccel.kernels.aabb_packet.packet_slab_test`). The packet descends into a
 child if any of its rays hits it, nearer child first by the entry distance of the
 lowest ray that hits both; the farther one is pushed with every ray's entry
 distance, and a popped entry goes on with the rays whose closest hit is still beyond
 their entry (none: it is dropped unfetched). A leaf tests its triangles for the rays
-that hit its box, one ray at a time with the watertight test of the single-ray
-traversals (:mod:`rayaccel.trace.leaf`). Rays of another octant in the same packet
-traverse as a packet of their own, so incoherent rays (diffuse bounces) pay up to
-eight descents with one lane each: this traversal is for coherent batches (camera
-rays in image order, shadow rays towards one light from neighbouring hits).
+that hit its box: with one vector form of the watertight test per triangle when those
+rays share their shear axes (:mod:`rayaccel.kernels.triangle_packet`, bit-identical to
+the scalar test), else one ray at a time with the single-ray traversals' test
+(:mod:`rayaccel.kernels.triangle`). Rays of another octant in the same packet traverse
+as a packet of their own, so incoherent rays (diffuse bounces) pay up to eight descents
+(one per octant) of a few rays each: this traversal is for coherent batches (camera rays
+in image order, shadow rays towards one light from neighbouring hits); queries that name
+no traversal take it only for those (:mod:`rayaccel.rays.coherence`).
 
 Results: every ray visits each leaf whose box it hits before its closest hit, with
 the single-ray box test lane by lane, so the closest ``t`` is ``bvh2.stack``'s; the
@@ -42,14 +45,14 @@ from rayaccel._jit import cpu_inline, prefetch_row
 from rayaccel.bvh.layouts.bvh2 import PACKED_ROW_BYTES, REF_BYTES, STACK_SIZE, TRIANGLE_BYTES, Bvh2
 from rayaccel.bvh.layouts.pairs import COUNT_COLUMN, REF_COLUMN
 from rayaccel.bvh.traverse.building_blocks import lane_planes
-from rayaccel.bvh.traverse.stack import stack_layout
+from rayaccel.bvh.traverse.stack import pairs_plan
 from rayaccel.kernels.aabb_packet import (
     HI_ROW,
     LO_ROW,
     PACKET,
     copy_lane_row,
     lanes_at_most,
-    packet_slab_test8,
+    packet_slab_test,
 )
 from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.kernels.triangle_packet import ROWS as TRIANGLE_ROWS
@@ -71,10 +74,10 @@ from rayaccel.trace.skeleton import store_counts, store_hit
 
 INF32 = np.float32(np.inf)
 _PRIM_BYTES = TRIANGLE_BYTES + REF_BYTES
-#: A stack entry: reference, leaf count and eight entry distances.
+#: A stack entry: reference, leaf count and an entry distance per ray.
 _STACK_ENTRY_BYTES = 8 + 4 * PACKET
 
-# Rows of a chunk's lane array after the eight the box test reads (ox, oy, oz, ix, iy,
+# Rows of a chunk's lane array after the eight that the box test reads (ox, oy, oz, ix, iy,
 # iz, lo, hi): the rays' culling pads, intervals, shear constants, sheared origins,
 # hit coordinates, the two children's entry distances, then the stack's.
 _PAD = 8
@@ -88,23 +91,15 @@ _V = _TRIANGLE + V
 _CHILD = _TRIANGLE + TRIANGLE_ROWS
 _STACK = _CHILD + 2
 _ROWS = _STACK + STACK_SIZE
-# Columns of a worker's integer lane array: the shear axes, the hit primitive, the
-# octant, then the counters (with statistics).
+# Columns of a worker's integer lane array: the shear axes (three), the hit primitive,
+# the octant, then the counters (with statistics).
 _AXES = 0
-_PRIM = 3
-_OCTANT = 4
-_STEPS = 5
-_NODES = 6
-_BOX = 7
-_PRIMS = 8
-_BYTES = 9
-_PEAK = 10
-_INT_COLUMNS = 11
+_PRIM, _OCTANT, _STEPS, _NODES, _BOX, _PRIMS, _BYTES, _PEAK, _INT_COLUMNS = range(3, 12)
 
 
 @dataclass(frozen=True, slots=True)
 class PacketOptions:
-    """Options of the ``bvh2.packet`` traversal (none yet; packets are eight rays)."""
+    """Options of the ``bvh2.packet`` traversal (none yet; packets are sixteen rays)."""
 
 
 def make_scratch_py(bvh):
@@ -116,7 +111,7 @@ def make_scratch_py(bvh):
 
 
 def popcount_py(mask):
-    """Return the number of set bits of an 8-bit lane mask."""
+    """Return the number of set bits of a lane mask."""
     n = 0
     for lane in range(PACKET):
         n += (mask >> lane) & 1
@@ -342,10 +337,10 @@ def trace_rays_py(
                     c1 = refs[node, REF_COLUMN + 1]
                     prefetch_row(box, max(c0, 0))
                     prefetch_row(box, max(c1, 0))
-                    m0 = packet_slab_test8(
+                    m0 = packet_slab_test(
                         box, node, near_x, far_x, near_y, far_y, near_z, far_z, lanes, _CHILD
                     )
-                    m1 = packet_slab_test8(
+                    m1 = packet_slab_test(
                         box, node, near_x + 1, far_x + 1, near_y + 1, far_y + 1,
                         near_z + 1, far_z + 1, lanes, _CHILD + 1,
                     )  # fmt: skip
@@ -443,14 +438,14 @@ trace_kernel = body_kernels(make_scratch, cpu_inline(trace_rays_py))
 
 @register_traversal(
     "bvh2.packet",
-    summary="packets of eight rays of one octant, one vector box test per child (coherent rays)",
+    summary="packets of 16 rays of one octant, vector box and triangle tests (coherent rays)",
     reference="Wald, Slusallek, Benthin, Wagner 2001, Interactive Rendering with Coherent "
     "Ray Tracing",
 )
 def trace_bvh2_packet(
     bvh: Bvh2, mesh: TriangleMesh, options: PacketOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a binary BVH in packets of eight consecutive rays.
+    """Trace rays through a binary BVH in packets of sixteen consecutive rays.
 
     The pairs layout of ``bvh2.stack`` is derived from the canonical tree on first use
     and shared with it.
@@ -460,6 +455,4 @@ def trace_bvh2_packet(
     TraversalOverflowError
         Never for trees from rayaccel builders (depth is bounded by ``MAX_DEPTH``).
     """
-    pairs = stack_layout(bvh, mesh, cache)
-    hint = f"the tree is deeper than its {STACK_SIZE}-entry stack allows (MAX_DEPTH)"
-    return TracePlan(trace_kernel, pairs.arrays(), hint)
+    return pairs_plan(trace_kernel, bvh, mesh, cache)

@@ -246,6 +246,13 @@ def trace_bvh2_stack(
     TraversalOverflowError
         Never for trees from rayaccel builders (depth is bounded by ``MAX_DEPTH``).
     """
+    return pairs_plan(trace_kernel, bvh, mesh, cache)
+
+
+def pairs_plan(
+    kernel_for: Any, bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None
+) -> TracePlan:
+    """Return the plan running ``kernel_for`` on the pairs rows (``bvh2.stack``, ``.packet``)."""
     pairs = stack_layout(bvh, mesh, cache)
     hint = f"the tree is deeper than its {STACK_SIZE}-entry stack allows (MAX_DEPTH)"
-    return TracePlan(trace_kernel, pairs.arrays(), hint)
+    return TracePlan(kernel_for, pairs.arrays(), hint)
