@@ -1,11 +1,10 @@
 """How coherent a ray batch is: the share of its packets whose rays travel together.
 
-A packet traversal (``bvh2.packet``) pays off when the consecutive rays it groups
-share their path through the tree: camera rays in image order, shadow rays towards
-one light from neighbouring hits. It loses to a single-ray traversal on incoherent
-batches such as diffuse bounces, whose neighbouring rays leave in unrelated
-directions (Wald et al. 2001 measured the same split; Embree and Mitsuba choose
-between packet and single-ray code by the same kind of test). :func:`packet_coherence`
+A packet traversal (``bvh2.packet``, Wald et al. 2001) pays off when the consecutive
+rays it groups share their path through the tree: camera rays in image order, shadow
+rays towards one light from neighbouring hits. It loses to a single-ray traversal on
+incoherent batches such as diffuse bounces, whose neighbouring rays leave in unrelated
+directions (docs/performance.md has both sides measured). :func:`packet_coherence`
 looks at a fixed sample of packets of consecutive rays, spread over the batch, and
 calls a packet coherent when its directions lie within a small cone and share their
 signs (the packet traversal's octant) and its origins lie close together relative to
@@ -16,10 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from rayaccel.kernels.aabb_packet import PACKET
 from rayaccel.rays.batch import RayBatch
 
 #: Rays of a packet (``bvh2.packet``'s width).
-PACKET_RAYS = 16
+PACKET_RAYS = PACKET
 #: Packets sampled from a batch.
 SAMPLED_PACKETS = 64
 #: A coherent packet's directions lie within this angle of its first ray's.
