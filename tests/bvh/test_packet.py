@@ -12,6 +12,7 @@ from rayaccel._jit import cpu_kernel
 from rayaccel.bench.raysets import standard_raysets
 from rayaccel.kernels import aabb_packet
 from rayaccel.kernels.aabb import ray_box_entry
+from rayaccel.kernels.ray_packet import packet_setup
 from rayaccel.kernels.triangle import ray_triangle, ray_triangle_setup
 from rayaccel.kernels.triangle_packet import (
     ROWS,
@@ -25,6 +26,7 @@ from rayaccel.kernels.triangle_packet import (
 )
 from rayaccel.rays.batch import RayBatch
 from rayaccel.rays.coherence import packet_coherence
+from rayaccel.trace.ray_setup import ray_prologue
 
 PACKET = aabb_packet.PACKET
 _OUT = 8
@@ -236,3 +238,68 @@ def test_packet_triangle_test_matches_the_scalar_one_lane_by_lane(dtype):
     hit = packet_out[..., 3] == 1
     assert np.array_equal(hit, scalar_out[..., 1] >= 0)
     assert 300 < hit.sum() < hit.size // 2
+
+
+@cpu_kernel()
+def _setups(origin, direction, tmin, tmax, root_box, lanes, axes, packet_out, scalar_out):
+    """Each packet's constants from the vector set-up and from the scalar prologue."""
+    n = origin.shape[0]
+    for p in range((n + PACKET - 1) // PACKET):
+        first = p * PACKET
+        valid_bits = packet_setup(
+            origin, direction, tmin, tmax, first, n, root_box, lanes, 8, 9, axes
+        )
+        for lane in range(min(PACKET, n - first)):
+            r = first + lane
+            (
+                valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, _fx, _fy, _fz,
+                kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
+            ) = ray_prologue(origin, direction, tmin, tmax, r, root_box)  # fmt: skip
+            scalar = (ox, oy, oz, ix, iy, iz, pad, t_lo, t_hit, Sx, Sy, Sz, okx, oky, okz)
+            vector = (
+                lanes[0, lane], lanes[1, lane], lanes[2, lane], lanes[3, lane],
+                lanes[4, lane], lanes[5, lane], lanes[8, lane], lanes[9 + T_LO, lane],
+                lanes[9 + T_HIT, lane], lanes[9 + SHEAR, lane], lanes[9 + SHEAR + 1, lane],
+                lanes[9 + SHEAR + 2, lane], lanes[9 + SHEARED_ORIGIN, lane],
+                lanes[9 + SHEARED_ORIGIN + 1, lane], lanes[9 + SHEARED_ORIGIN + 2, lane],
+            )  # fmt: skip
+            for k in range(15):
+                scalar_out[r, k] = scalar[k]
+                packet_out[r, k] = vector[k]
+            octant = nx + (ny - 2) * 2 + (nz - 4) * 4
+            scalar_out[r, 15] = kx + 4 * ky + 16 * kz + 64 * octant + 512 * valid
+            packet_out[r, 15] = (
+                axes[0, lane] + 4 * axes[1, lane] + 16 * axes[2, lane] + 64 * axes[3, lane]
+                + 512 * ((valid_bits >> lane) & 1)
+            )  # fmt: skip
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_packet_setup_matches_the_scalar_prologue_lane_by_lane(dtype):
+    """Reciprocals, shear, pad, interval and validity bit for bit, degenerate rays included."""
+    rng = np.random.default_rng(4)
+    n = 20 * PACKET + 7  # a partial last packet
+    origin = rng.uniform(-3, 3, (n, 3)).astype(dtype)
+    direction = rng.normal(size=(n, 3)).astype(dtype)
+    direction[::5, 0] = 0.0
+    direction[1::7, 2] = -0.0
+    direction[2::11] = 0.0  # zero direction: invalid
+    direction[3::13, 1] = np.nan
+    origin[4::17, 2] = np.inf
+    direction[6::9, 1] = direction[6::9, 0]  # |dx| == |dy|: ties in the dominant axis
+    tmin = rng.uniform(0, 1, n).astype(dtype)
+    tmax = np.where(rng.random(n) < 0.5, np.inf, rng.uniform(0, 5, n)).astype(dtype)
+    tmax[5::19] = 0.0
+    root_box = np.array([-2, 2, -1, 3, -4, 1], np.float32)
+    lanes = np.zeros((9 + ROWS, PACKET), dtype)
+    axes = np.zeros((4, PACKET), np.int64)
+    packet_out = np.zeros((n, 16), dtype)
+    scalar_out = np.zeros((n, 16), dtype)
+    with np.errstate(all="ignore"):
+        _setups(origin, direction, tmin, tmax, root_box, lanes, axes, packet_out, scalar_out)
+    valid = scalar_out[:, 15] >= 512
+    assert 0.5 * n < valid.sum() < n
+    assert np.array_equal(packet_out[:, 15], scalar_out[:, 15])
+    # The constants of valid rays, bit for bit (invalid rays' are never read).
+    bits = packet_out[valid, :15].view(np.uint8), scalar_out[valid, :15].view(np.uint8)
+    assert np.array_equal(*bits)

@@ -47,15 +47,15 @@ def packet_coherence(rays: RayBatch, scene_diagonal: float) -> float:
     n_packets = rays.n_rays // PACKET_RAYS
     if n_packets == 0:
         return 0.0
-    sampled = min(SAMPLED_PACKETS, n_packets)
-    first = np.unique(np.linspace(0, n_packets - 1, sampled).astype(np.int64))
+    first = np.arange(0, n_packets, -(-n_packets // SAMPLED_PACKETS))
     rows = first[:, None] * PACKET_RAYS + np.arange(PACKET_RAYS)
-    direction = rays.direction[rows].astype(np.float64)
-    origin = rays.origin[rows].astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        unit = direction / np.linalg.norm(direction, axis=2, keepdims=True)
-        cosine = np.min(np.sum(unit * unit[:, :1], axis=2), axis=1)
-        spread = np.max(np.linalg.norm(origin - origin[:, :1], axis=2), axis=1)
+    direction = rays.direction[rows]
+    origin = rays.origin[rows]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        unit = direction / np.sqrt(np.einsum("pra,pra->pr", direction, direction))[..., None]
+        cosine = np.min(np.einsum("pra,pa->pr", unit, unit[:, 0]), axis=1)
+        offset = origin - origin[:, :1]
+        spread = np.sqrt(np.max(np.einsum("pra,pra->pr", offset, offset), axis=1))
         same_signs = np.all(np.signbit(direction) == np.signbit(direction[:, :1]), axis=(1, 2))
         coherent = (
             same_signs

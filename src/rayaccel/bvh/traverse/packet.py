@@ -54,6 +54,7 @@ from rayaccel.kernels.aabb_packet import (
     lanes_at_most,
     packet_slab_test,
 )
+from rayaccel.kernels.ray_packet import KX, OCTANT, packet_setup
 from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.kernels.triangle_packet import ROWS as TRIANGLE_ROWS
 from rayaccel.kernels.triangle_packet import (
@@ -67,7 +68,7 @@ from rayaccel.kernels.triangle_packet import (
 )
 from rayaccel.queries import QUERY_ANY
 from rayaccel.scene.mesh import TriangleMesh
-from rayaccel.trace.ray_setup import ray_prologue, root_entry
+from rayaccel.trace.ray_setup import root_entry
 from rayaccel.trace.register import LayoutCache, TracePlan, register_traversal
 from rayaccel.trace.run import body_kernels
 from rayaccel.trace.skeleton import store_counts, store_hit
@@ -91,10 +92,11 @@ _V = _TRIANGLE + V
 _CHILD = _TRIANGLE + TRIANGLE_ROWS
 _STACK = _CHILD + 2
 _ROWS = _STACK + STACK_SIZE
-# Columns of a worker's integer lane array: the shear axes (three), the hit primitive,
-# the octant, then the counters (with statistics).
-_AXES = 0
-_PRIM, _OCTANT, _STEPS, _NODES, _BOX, _PRIMS, _BYTES, _PEAK, _INT_COLUMNS = range(3, 12)
+# Rows of a worker's integer lane array: those packet_setup writes (the shear axes and
+# the octant), the hit primitive, then the counters (with statistics).
+_AXES = KX
+_PRIM, _STEPS, _NODES, _BOX, _PRIMS, _BYTES, _PEAK, _INT_ROWS = range(OCTANT + 1, OCTANT + 9)
+_OCTANT = OCTANT
 
 
 @dataclass(frozen=True, slots=True)
@@ -106,7 +108,7 @@ def make_scratch_py(bvh):
     """Return one worker's stack references, leaf counts and integer lane state."""
     stack_ref = np.empty(STACK_SIZE, dtype=np.int32)
     stack_count = np.empty(STACK_SIZE, dtype=np.int32)
-    lane_int = np.zeros((PACKET, _INT_COLUMNS), dtype=np.int64)
+    lane_int = np.zeros((_INT_ROWS, PACKET), dtype=np.int64)
     return stack_ref, stack_count, lane_int
 
 
@@ -126,65 +128,47 @@ def share_py(lane_int, mask, column, amount):
     each = amount // max(popcount(mask), 1)
     for lane in range(PACKET):
         if (mask >> lane) & 1:
-            lane_int[lane, column] += each
+            lane_int[column, lane] += each
 
 
 share = cpu_inline(share_py)
 
 
-def setup_packet_py(bvh, origin, direction, tmin, tmax, p0, n_lanes, lanes, lane_int, with_stats):
-    """Compute the per-ray constants of rays ``p0:p0 + n_lanes``; return the lanes to trace.
+def setup_packet_py(bvh, origin, direction, tmin, tmax, p0, end, lanes, lane_int, with_stats):
+    """Compute the constants of rays ``p0:min(p0 + PACKET, end)``; return the lanes to trace.
 
-    Lanes of degenerate rays and past ``n_lanes`` stay out of the returned mask. The
-    scene box is tested only when the root is a leaf: otherwise a ray that misses it
-    misses the root's children, which the packet's first step tests anyway.
+    In vectors (:data:`rayaccel.kernels.ray_packet.packet_setup`). Lanes of degenerate
+    rays and past ``end`` stay out of the returned mask. The scene box is tested only
+    when the root is a leaf: otherwise a ray that misses it misses the root's children,
+    which the packet's first step tests anyway.
     """
-    pending = 0
+    pending = packet_setup(
+        origin, direction, tmin, tmax, p0, end, bvh.root_box, lanes, _PAD, _TRIANGLE, lane_int
+    )
     for lane in range(PACKET):
-        lanes[LO_ROW, lane] = 0
-        lanes[HI_ROW, lane] = -np.inf
-        lane_int[lane, _PRIM] = -1
+        lane_int[_PRIM, lane] = -1
         if with_stats:
-            for k in range(_STEPS, _INT_COLUMNS):
-                lane_int[lane, k] = 0
-        if lane >= n_lanes:
-            continue
-        (
-            valid, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-            kx, ky, kz, Sx, Sy, Sz, okx, oky, okz, t_lo, t_hit, pad,
-        ) = ray_prologue(origin, direction, tmin, tmax, p0 + lane, bvh.root_box)  # fmt: skip
-        lanes[0, lane] = ox
-        lanes[1, lane] = oy
-        lanes[2, lane] = oz
-        lanes[3, lane] = ix
-        lanes[4, lane] = iy
-        lanes[5, lane] = iz
-        lanes[_PAD, lane] = pad
-        lanes[_T_LO, lane] = t_lo
-        lanes[_T_HIT, lane] = t_hit
-        lanes[_SHEAR, lane] = Sx
-        lanes[_SHEAR + 1, lane] = Sy
-        lanes[_SHEAR + 2, lane] = Sz
-        lanes[_SHEARED_ORIGIN, lane] = okx
-        lanes[_SHEARED_ORIGIN + 1, lane] = oky
-        lanes[_SHEARED_ORIGIN + 2, lane] = okz
-        lanes[_U, lane] = 0
-        lanes[_V, lane] = 0
-        lane_int[lane, _AXES] = kx
-        lane_int[lane, _AXES + 1] = ky
-        lane_int[lane, _AXES + 2] = kz
-        lane_int[lane, _OCTANT] = nx + (ny - 2) * 2 + (nz - 4) * 4
-        if valid and bvh.root_ref[0] < 0:
-            # A leaf root has no row to test the scene box with: test it here.
-            if with_stats:
-                lane_int[lane, _BOX] = 1
+            for k in range(_STEPS, _INT_ROWS):
+                lane_int[k, lane] = 0
+    if bvh.root_ref[0] < 0:
+        # A leaf root has no row to test the scene box with: test it here.
+        for lane in range(PACKET):
+            if not (pending >> lane) & 1:
+                continue
+            octant = lane_int[_OCTANT, lane]
+            nx = octant & 1
+            ny = 2 + ((octant >> 1) & 1)
+            nz = 4 + ((octant >> 2) & 1)
+            pad = lanes[_PAD, lane]
             entry = root_entry(
-                bvh.root_box, ox, oy, oz, ix, iy, iz, nx, ny, nz, fx, fy, fz,
-                t_lo - pad, t_hit + pad,
+                bvh.root_box, lanes[0, lane], lanes[1, lane], lanes[2, lane], lanes[3, lane],
+                lanes[4, lane], lanes[5, lane], nx, ny, nz, 1 - nx, 5 - ny, 9 - nz,
+                lanes[_T_LO, lane] - pad, lanes[_T_HIT, lane] + pad,
             )  # fmt: skip
-            valid = entry < INF32
-        if valid:
-            pending |= 1 << lane
+            if with_stats:
+                lane_int[_BOX, lane] = 1
+            if entry == INF32:
+                pending &= ~(1 << lane)
     return pending
 
 
@@ -202,9 +186,9 @@ def leaf_packet_py(bvh, first, count, mask, axes, lanes, lane_int, stop_at_first
             continue
         for lane in range(PACKET):
             if (hit >> lane) & 1:
-                lane_int[lane, _PRIM] = bvh.tri_prim[i]
+                lane_int[_PRIM, lane] = bvh.tri_prim[i]
                 if stop_at_first and with_stats:
-                    lane_int[lane, _PRIMS] += i - first + 1
+                    lane_int[_PRIMS, lane] += i - first + 1
         if stop_at_first:
             retired |= hit
             testing &= ~hit
@@ -216,9 +200,9 @@ def leaf_packet_py(bvh, first, count, mask, axes, lanes, lane_int, stop_at_first
             if (retired >> lane) & 1:
                 lanes[HI_ROW, lane] = -np.inf
             elif with_stats:
-                lane_int[lane, _PRIMS] += count
+                lane_int[_PRIMS, lane] += count
             if with_stats:
-                lane_int[lane, _NODES] += 1
+                lane_int[_NODES, lane] += 1
     if with_stats:
         share(lane_int, mask, _BYTES, _PRIM_BYTES * count * popcount(mask))
     return retired
@@ -241,9 +225,9 @@ def leaf_lanes_py(bvh, first, count, mask, lanes, lane_int, stop_at_first, with_
     for lane in range(PACKET):
         if not (mask >> lane) & 1:
             continue
-        kx = lane_int[lane, _AXES]
-        ky = lane_int[lane, _AXES + 1]
-        kz = lane_int[lane, _AXES + 2]
+        kx = lane_int[_AXES, lane]
+        ky = lane_int[_AXES + 1, lane]
+        kz = lane_int[_AXES + 2, lane]
         Sx = lanes[_SHEAR, lane]
         Sy = lanes[_SHEAR + 1, lane]
         Sz = lanes[_SHEAR + 2, lane]
@@ -257,7 +241,7 @@ def leaf_lanes_py(bvh, first, count, mask, lanes, lane_int, stop_at_first, with_
             t, u, v = ray_triangle(bvh.tri, i, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit)
             if t < t_hit:
                 t_hit = t
-                lane_int[lane, _PRIM] = bvh.tri_prim[i]
+                lane_int[_PRIM, lane] = bvh.tri_prim[i]
                 lanes[_U, lane] = u
                 lanes[_V, lane] = v
                 if stop_at_first:
@@ -269,8 +253,8 @@ def leaf_lanes_py(bvh, first, count, mask, lanes, lane_int, stop_at_first, with_
         if (retired >> lane) & 1:
             lanes[HI_ROW, lane] = -np.inf
         if with_stats:
-            lane_int[lane, _NODES] += 1
-            lane_int[lane, _PRIMS] += tested
+            lane_int[_NODES, lane] += 1
+            lane_int[_PRIMS, lane] += tested
     if with_stats:
         share(lane_int, mask, _BYTES, _PRIM_BYTES * count * popcount(mask))
     return retired
@@ -293,15 +277,15 @@ def trace_rays_py(
     for p0 in range(begin, end, PACKET):
         n_lanes = min(PACKET, end - p0)
         pending = setup_packet(
-            bvh, origin, direction, tmin, tmax, p0, n_lanes, lanes, lane_int, with_stats
+            bvh, origin, direction, tmin, tmax, p0, end, lanes, lane_int, with_stats
         )
         while pending != 0:
             # The rays of the lowest pending ray's octant traverse together.
             lead = trailing_zeros(pending)
-            octant = lane_int[lead, _OCTANT]
+            octant = lane_int[_OCTANT, lead]
             group = 0
             for lane in range(PACKET):
-                if (pending >> lane) & 1 and lane_int[lane, _OCTANT] == octant:
+                if (pending >> lane) & 1 and lane_int[_OCTANT, lane] == octant:
                     group |= 1 << lane
                     lanes[LO_ROW, lane] = lanes[_T_LO, lane] - lanes[_PAD, lane]
                     lanes[HI_ROW, lane] = lanes[_T_HIT, lane] + lanes[_PAD, lane]
@@ -310,11 +294,11 @@ def trace_rays_py(
                     lanes[HI_ROW, lane] = -np.inf
             pending &= ~group
             # Rays sharing the lead's shear axes test a leaf's triangles as one packet.
-            axes = (lane_int[lead, _AXES], lane_int[lead, _AXES + 1], lane_int[lead, _AXES + 2])
+            axes = (lane_int[_AXES, lead], lane_int[_AXES + 1, lead], lane_int[_AXES + 2, lead])
             shared_axes = True
             for lane in range(PACKET):
                 if (group >> lane) & 1 and (
-                    lane_int[lane, _AXES] != axes[0] or lane_int[lane, _AXES + 1] != axes[1]
+                    lane_int[_AXES, lane] != axes[0] or lane_int[_AXES + 1, lane] != axes[1]
                 ):
                     shared_axes = False
             nx = octant & 1
@@ -347,9 +331,9 @@ def trace_rays_py(
                     if with_stats:
                         for lane in range(PACKET):
                             if (alive >> lane) & 1:
-                                lane_int[lane, _STEPS] += 1
-                                lane_int[lane, _NODES] += 1
-                                lane_int[lane, _BOX] += 2
+                                lane_int[_STEPS, lane] += 1
+                                lane_int[_NODES, lane] += 1
+                                lane_int[_BOX, lane] += 2
                         share(lane_int, alive, _BYTES, PACKED_ROW_BYTES)
                     if m0 != 0 and m1 != 0:
                         # Both hit: the nearer for the lowest ray hitting both goes first.
@@ -385,7 +369,7 @@ def trace_rays_py(
                     if with_stats:
                         for lane in range(PACKET):
                             if (mask >> lane) & 1:
-                                lane_int[lane, _STEPS] += 1
+                                lane_int[_STEPS, lane] += 1
                     if shared_axes:
                         retired = leaf_packet(
                             bvh, ~node, count, mask, axes, lanes, lane_int, query == QUERY_ANY,
@@ -415,17 +399,17 @@ def trace_rays_py(
             if with_stats:
                 for lane in range(PACKET):
                     if (group >> lane) & 1:
-                        lane_int[lane, _PEAK] = peak
+                        lane_int[_PEAK, lane] = peak
         for lane in range(n_lanes):
             r = p0 + lane
             if with_stats:
                 store_counts(
-                    counters, r, lane_int[lane, _STEPS], lane_int[lane, _NODES],
-                    lane_int[lane, _BOX], lane_int[lane, _PRIMS], lane_int[lane, _PEAK],
-                    lane_int[lane, _BYTES],
+                    counters, r, lane_int[_STEPS, lane], lane_int[_NODES, lane],
+                    lane_int[_BOX, lane], lane_int[_PRIMS, lane], lane_int[_PEAK, lane],
+                    lane_int[_BYTES, lane],
                 )  # fmt: skip
             store_hit(
-                hit_t, hit_prim, hit_u, hit_v, r, lanes[_T_HIT, lane], lane_int[lane, _PRIM],
+                hit_t, hit_prim, hit_u, hit_v, r, lanes[_T_HIT, lane], lane_int[_PRIM, lane],
                 lanes[_U, lane], lanes[_V, lane],
             )  # fmt: skip
     return n_overflowed
