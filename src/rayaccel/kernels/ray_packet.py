@@ -11,9 +11,9 @@ dozen selects per ray, a third of a shadow ray's time in a packet traversal.
 :data:`packet_setup` ``(origin, direction, tmin, tmax, first, last, root_box, lanes,
 pad_row, base, axes) -> int32`` reads rays ``first`` to ``first + 15`` (those from
 ``last`` on repeat ray ``last - 1`` and stay out of the result) and writes, lane by
-lane, rows 0 to 7 of ``lanes`` (the rows of
-:data:`rayaccel.kernels.aabb_packet.packet_slab_test`: origin, reciprocal direction,
-``lo = 0`` and ``hi = -inf``), the culling pad in row ``pad_row``, and from row ``base``
+lane, rows 0 to 5 of ``lanes`` (origin and reciprocal direction, the rows of
+:data:`rayaccel.kernels.aabb_packet.packet_slab_test`; its ``lo`` and ``hi`` rows are the
+caller's, set per descent), the culling pad in row ``pad_row``, and from row ``base``
 on the rows of :data:`rayaccel.kernels.triangle_packet.packet_triangle` (``t_lo``,
 ``t_hit``, shear, sheared origin, ``u = v = 0``). ``axes`` (int64, rows of 16 lanes)
 gets ``kx, ky, kz`` and the octant (bit 0, 1, 2 set for a negative ``x, y, z``
@@ -32,9 +32,7 @@ from numba.extending import intrinsic
 
 from rayaccel.kernels.aabb import INTERVAL_SLACK
 from rayaccel.kernels.aabb_packet import (
-    HI_ROW,
     INVERSE_ROW,
-    LO_ROW,
     ORIGIN_ROW,
     PACKET,
     lane_row_pointer,
@@ -197,8 +195,6 @@ def _codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
         store(at(INVERSE_ROW + axis), inverse[axis])
         store(at(SHEAR + axis, base), shear[axis])
         store(at(SHEARED_ORIGIN + axis, base), sheared_origin[axis])
-    store(at(LO_ROW), const(0.0))
-    store(at(HI_ROW), const(float("-inf")))
     store(pad_row, pad)
     store(at(T_LO, base), t_lo)
     store(at(T_HIT, base), t_hit)

@@ -194,21 +194,31 @@ def leaf_packet_py(bvh, first, count, mask, axes, lanes, lane_int, stop_at_first
             testing &= ~hit
             if testing == 0:
                 break
+    if with_stats:
+        for lane in range(PACKET):
+            if ((mask & ~retired) >> lane) & 1:
+                lane_int[_PRIMS, lane] += count
+    close_leaf(lanes, lane_int, count, mask, retired, with_stats)
+    return retired
+
+
+leaf_packet = cpu_inline(leaf_packet_py)
+
+
+def close_leaf_py(lanes, lane_int, count, mask, retired, with_stats):
+    """Move each ray's bound ``hi`` to its closest hit (``-inf``: retired); count the leaf."""
     for lane in range(PACKET):
         if (mask >> lane) & 1:
             lanes[HI_ROW, lane] = lanes[_T_HIT, lane] + lanes[_PAD, lane]
             if (retired >> lane) & 1:
                 lanes[HI_ROW, lane] = -np.inf
-            elif with_stats:
-                lane_int[_PRIMS, lane] += count
             if with_stats:
                 lane_int[_NODES, lane] += 1
     if with_stats:
         share(lane_int, mask, _BYTES, _PRIM_BYTES * count * popcount(mask))
-    return retired
 
 
-leaf_packet = cpu_inline(leaf_packet_py)
+close_leaf = cpu_inline(close_leaf_py)
 
 
 def leaf_lanes_py(bvh, first, count, mask, lanes, lane_int, stop_at_first, with_stats):
@@ -249,14 +259,9 @@ def leaf_lanes_py(bvh, first, count, mask, lanes, lane_int, stop_at_first, with_
                     retired |= 1 << lane
                     break
         lanes[_T_HIT, lane] = t_hit
-        lanes[HI_ROW, lane] = t_hit + lanes[_PAD, lane]
-        if (retired >> lane) & 1:
-            lanes[HI_ROW, lane] = -np.inf
         if with_stats:
-            lane_int[_NODES, lane] += 1
             lane_int[_PRIMS, lane] += tested
-    if with_stats:
-        share(lane_int, mask, _BYTES, _PRIM_BYTES * count * popcount(mask))
+    close_leaf(lanes, lane_int, count, mask, retired, with_stats)
     return retired
 
 
