@@ -8,7 +8,7 @@ import inspect
 import pytest
 
 from rayaccel import registry
-from rayaccel._variant import annotated_options
+from rayaccel._variant import annotated_options, docstring_reference, docstring_summary
 
 TRAVERSALS = [v for v in registry.variants("traversal") if v.backend == "cpu"]
 
@@ -46,3 +46,45 @@ def test_a_variant_without_an_options_dataclass_is_refused():
         annotated_options(plan)
     with pytest.raises(TypeError, match="annotate 'options'"):
         annotated_options(lambda mesh: None)
+
+
+@pytest.mark.parametrize("variant", registry.variants(), ids=lambda v: v.key)
+def test_summary_and_reference_come_from_the_docstring(variant):
+    # A variant describes itself once: `rayaccel list` shows its docstring's first line
+    # and its References section.
+    doc = inspect.cleandoc(variant.func.__doc__)
+    assert doc.startswith(variant.summary)
+    if variant.reference:
+        section = doc.split("References\n----------\n", 1)[1]
+        assert " ".join(section.split()).startswith(variant.reference)
+
+
+def test_docstring_summary_and_reference_are_parsed():
+    def build(mesh, options=None):
+        """Build something quickly.
+
+        More text.
+
+        Parameters
+        ----------
+        mesh : TriangleMesh
+
+        References
+        ----------
+        A & B 2001, First Paper;
+        C 2002, Second Paper.
+
+        Examples
+        --------
+        >>> build(mesh)
+        """
+
+    assert docstring_summary(build) == "Build something quickly"
+    assert docstring_reference(build) == "A & B 2001, First Paper; C 2002, Second Paper"
+
+    def bare(mesh, options=None):
+        pass
+
+    assert docstring_reference(bare) == ""
+    with pytest.raises(ValueError, match="needs a docstring"):
+        docstring_summary(bare)

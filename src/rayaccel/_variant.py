@@ -268,13 +268,29 @@ def annotated_options(func: Callable[..., Any]) -> type:
     return options
 
 
+def docstring_summary(func: Callable[..., Any]) -> str:
+    """Return the first line of ``func``'s docstring without its full stop.
+
+    A variant says what it is once, in its docstring; the registry lists that line.
+    """
+    summary = inspect.cleandoc(func.__doc__ or "").partition("\n")[0].strip()
+    if not summary:
+        raise ValueError(f"{func.__qualname__}: a registered variant needs a docstring")
+    return summary.removesuffix(".")
+
+
+def docstring_reference(func: Callable[..., Any]) -> str:
+    """Return the ``References`` section of ``func``'s docstring as one line ("" if none)."""
+    doc = inspect.cleandoc(func.__doc__ or "")
+    found = re.search(r"^References\n-{3,}\n(.*?)(?=^\w[\w ]*\n-{3,}$|\Z)", doc, re.M | re.S)
+    return " ".join(found.group(1).split()).removesuffix(".") if found else ""
+
+
 def register(
     role: Role,
     key: str,
     *,
     options: type | None = None,
-    summary: str,
-    reference: str = "",
     backend: Literal["cpu", "cuda"] = "cpu",
     stage: Stage = "after",
     default: bool = False,
@@ -282,7 +298,9 @@ def register(
     """Return a decorator that registers ``func`` as the variant ``key``.
 
     ``options`` defaults to the dataclass ``func``'s ``options`` parameter is annotated
-    with (:func:`annotated_options`).
+    with (:func:`annotated_options`). The summary that ``rayaccel list`` shows is the
+    docstring's first line, the reference its ``References`` section
+    (:func:`docstring_summary`, :func:`docstring_reference`).
 
     ``stage`` applies to steps only: ``"after"`` (default) for a post-process of the
     built structure, ``"before"`` for a step that makes the references the builder
@@ -303,6 +321,7 @@ def register(
         if key in REGISTRY and REGISTRY[key].func is not func:
             raise ValueError(f"variant {key!r} registered twice")
         options_type = annotated_options(func) if options is None else options
+        summary, reference = docstring_summary(func), docstring_reference(func)
         REGISTRY[key] = Variant(
             key, role, structure, func, options_type, summary, reference, backend, stage, default
         )

@@ -58,8 +58,6 @@ def _public_signature(trace: Callable[..., HitBatch], plan: Callable[..., TraceP
 def register_traversal(
     key: str,
     *,
-    summary: str,
-    reference: str = "",
     default: bool = False,
 ) -> Callable[[Callable[..., TracePlan]], Callable[..., HitBatch]]:
     """Return a decorator that registers a traversal from its plan.
@@ -70,7 +68,8 @@ def register_traversal(
     cache. The decorator returns, and registers as the variant ``key``, the public
     ``trace(structure, mesh, rays, *, query="closest", stats=False, options=None,
     cache=None) -> HitBatch`` that runs the plan with :func:`run_trace`; it keeps the
-    plan's name and docstring.
+    plan's name and docstring (whose first line and ``References`` section the
+    registry lists).
     """
 
     def decorate(plan: Callable[..., TracePlan]) -> Callable[..., HitBatch]:
@@ -95,9 +94,8 @@ def register_traversal(
         del trace.__wrapped__
         trace.__signature__ = _public_signature(trace, plan, options_type)  # type: ignore[attr-defined]
         registered: Callable[..., HitBatch] = register(
-            "traversal", key, options=options_type, summary=summary, reference=reference,
-            default=default,
-        )(trace)  # fmt: skip
+            "traversal", key, options=options_type, default=default
+        )(trace)
         return registered
 
     return decorate

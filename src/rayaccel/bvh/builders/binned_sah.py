@@ -179,19 +179,19 @@ def _split_level(
             )  # fmt: skip
 
 
-@register(
-    "builder",
-    "bvh2.binned_sah",
-    default=True,
-    summary="top-down binned SAH on centroid bins, parallel over large nodes and subtrees",
-    reference="Wald 2007, On fast Construction of SAH-based Bounding Volume Hierarchies",
-)
+@register("builder", "bvh2.binned_sah", default=True)
 def build_binned_sah(
     mesh: TriangleMesh, options: BinnedSahOptions | None = None, refs: BuildRefs | None = None
 ) -> Bvh2:
-    """Build a binary BVH with the binned surface area heuristic.
+    """Top-down binned SAH on centroid bins, parallel over large nodes and subtrees.
+
+    Build a binary BVH with the binned surface area heuristic.
 
     The tree's depth is at most ``MAX_DEPTH``.
+
+    References
+    ----------
+    Wald 2007, On fast Construction of SAH-based Bounding Volume Hierarchies.
     """
     opt = options or BinnedSahOptions()
     if refs is None:

@@ -206,18 +206,19 @@ def build_insertion_refs(
     return collapsed_to_canonical(tree, root, n_prims, opt)
 
 
-@register(
-    "builder",
-    "bvh2.insertion",
-    summary="insertion build: add primitives one by one where the SAH grows least, SAH collapse",
-    reference="Goldsmith & Salmon 1987, Automatic Creation of Object Hierarchies for Ray Tracing",
-)
+@register("builder", "bvh2.insertion")
 def build_insertion(
     mesh: TriangleMesh, options: InsertionOptions | None = None, refs: BuildRefs | None = None
 ) -> Bvh2:
-    """Build a BVH by insertion (see the module docstring).
+    """Build by insertion: add primitives one by one where the SAH grows least, SAH collapse.
+
+    See the module docstring.
 
     The tree's depth is at most ``MAX_DEPTH``.
+
+    References
+    ----------
+    Goldsmith & Salmon 1987, Automatic Creation of Object Hierarchies for Ray Tracing.
     """
     opt = options or InsertionOptions()
     prim_lo, prim_hi, prim_id = reference_boxes(mesh, refs, "bvh2.insertion")

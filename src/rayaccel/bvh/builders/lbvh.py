@@ -321,21 +321,21 @@ def build_lbvh_refs(
     return refitted_to_canonical(tree, int(root), n_prims, as_leaf, height, n_eff, n_prim)
 
 
-@register(
-    "builder",
-    "bvh2.lbvh",
-    summary="linear BVH: Morton codes, parallel radix sort, Apetrei 2014 or Karras 2012 "
-    "emission, SAH collapse",
-    reference="Apetrei 2014, Fast and Simple Agglomerative LBVH Construction; Karras 2012, "
-    "Maximizing Parallelism in the Construction of BVHs, Octrees, and k-d Trees; "
-    "Lauterbach et al. 2009",
-)
+@register("builder", "bvh2.lbvh")
 def build_lbvh(
     mesh: TriangleMesh, options: LbvhOptions | None = None, refs: BuildRefs | None = None
 ) -> Bvh2:
-    """Build a linear BVH (see the module docstring).
+    """Linear BVH: Morton codes, radix sort, Apetrei or Karras emission, SAH collapse.
+
+    Build a linear BVH (see the module docstring).
 
     The tree's depth is at most ``MAX_DEPTH``.
+
+    References
+    ----------
+    Apetrei 2014, Fast and Simple Agglomerative LBVH Construction;
+    Karras 2012, Maximizing Parallelism in the Construction of BVHs, Octrees, and k-d Trees;
+    Lauterbach et al. 2009.
     """
     opt = options or LbvhOptions()
     prim_lo, prim_hi, ids = reference_boxes(mesh, refs, "bvh2.lbvh")

@@ -235,18 +235,19 @@ def build_ploc_refs(
     return collapsed_to_canonical(tree, root, n_prims, opt)
 
 
-@register(
-    "builder",
-    "bvh2.ploc",
-    summary="parallel locally-ordered clustering in a Morton-order window, SAH collapse",
-    reference="Meister & Bittner 2018, Parallel Locally-Ordered Clustering for BVH Construction",
-)
+@register("builder", "bvh2.ploc")
 def build_ploc(
     mesh: TriangleMesh, options: PlocOptions | None = None, refs: BuildRefs | None = None
 ) -> Bvh2:
-    """Build a BVH by parallel locally-ordered clustering (see the module docstring).
+    """Parallel locally-ordered clustering in a Morton-order window, SAH collapse.
+
+    Build a BVH by parallel locally-ordered clustering (see the module docstring).
 
     The tree's depth is at most ``MAX_DEPTH``.
+
+    References
+    ----------
+    Meister & Bittner 2018, Parallel Locally-Ordered Clustering for BVH Construction.
     """
     opt = options or PlocOptions()
     prim_lo, prim_hi, ids = reference_boxes(mesh, refs, "bvh2.ploc")

@@ -138,21 +138,22 @@ def _leaf_boxes(refs, left_of, t_first, t_count, lo, hi, n_used):
                 hi[node, k] = max(hi[node, k], refs[r, 4 + k])
 
 
-@register(
-    "builder",
-    "bvh2.sbvh",
-    summary="SAH BVH with spatial splits: chopped binning, exact clipping, unsplitting",
-    reference="Stich, Friedrich, Dietrich 2009, Spatial Splits in Bounding Volume Hierarchies",
-)
+@register("builder", "bvh2.sbvh")
 def build_sbvh(
     mesh: TriangleMesh, options: SbvhOptions | None = None, refs: BuildRefs | None = None
 ) -> Bvh2:
-    """Build a spatial-split BVH (see the module docstring).
+    """SAH BVH with spatial splits: chopped binning, exact clipping, unsplitting.
+
+    Build a spatial-split BVH (see the module docstring).
 
     Spatial splits clip a reference's triangle and intersect with its current box, so
     parts of ``refs`` are split further correctly. The tree has ``n_refs <= (1 +
     duplication_budget) · m`` references for ``m`` initial ones (``n_prims`` without
     ``refs``); its depth is at most ``MAX_DEPTH``.
+
+    References
+    ----------
+    Stich, Friedrich, Dietrich 2009, Spatial Splits in Bounding Volume Hierarchies.
     """
     opt = options or SbvhOptions()
     tri = mesh.triangles()

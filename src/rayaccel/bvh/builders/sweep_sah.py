@@ -72,16 +72,18 @@ def _root_box(prim_lo, prim_hi, t_lo, t_hi):
             t_hi[0, k] = max(t_hi[0, k], prim_hi[p, k])
 
 
-@register(
-    "builder",
-    "bvh2.sweep_sah",
-    summary="top-down full-sweep SAH over presorted centroid orders (reference quality)",
-    reference="Wald, Boulos, Shirley 2007, Ray Tracing Deformable Scenes using Dynamic BVHs",
-)
+@register("builder", "bvh2.sweep_sah")
 def build_sweep_sah(
     mesh: TriangleMesh, options: SweepSahOptions | None = None, refs: BuildRefs | None = None
 ) -> Bvh2:
-    """Build a binary BVH evaluating every split of the sorted centroids."""
+    """Top-down full-sweep SAH over presorted centroid orders (reference quality).
+
+    Build a binary BVH evaluating every split of the sorted centroids.
+
+    References
+    ----------
+    Wald, Boulos, Shirley 2007, Ray Tracing Deformable Scenes using Dynamic BVHs.
+    """
     opt = options or SweepSahOptions()
     ref_prim: IntArray | None = None
     if refs is None:

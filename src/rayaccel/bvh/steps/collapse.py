@@ -41,14 +41,16 @@ class CollapseOptions:
         check_leaf_costs(self.max_leaf_size, self.traversal_cost, self.intersection_cost)
 
 
-@register(
-    "step",
-    "bvh2+collapse",
-    summary="merge subtrees into leaves where the SAH prefers a leaf",
-    reference="Meister & Bittner 2018, Parallel Locally-Ordered Clustering ..., §4.4",
-)
+@register("step", "bvh2+collapse")
 def collapse_leaves(bvh: Bvh2, mesh: TriangleMesh, options: CollapseOptions | None = None) -> Bvh2:
-    """Return ``bvh`` with SAH leaf collapsing applied (see the module docstring)."""
+    """Merge subtrees into leaves where the SAH prefers a leaf.
+
+    Return ``bvh`` with SAH leaf collapsing applied (see the module docstring).
+
+    References
+    ----------
+    Meister & Bittner 2018, Parallel Locally-Ordered Clustering ..., §4.4.
+    """
     opt = options or CollapseOptions()
     tree, _ = to_linked(bvh)
     return collapsed_to_canonical(tree, 0, bvh.n_prims, opt)

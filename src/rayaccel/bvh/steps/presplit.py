@@ -464,16 +464,11 @@ def presplit_median(tri: np.ndarray, budget: float, base: float, exponent: float
     return refs
 
 
-@register(
-    "step",
-    "bvh2+presplit",
-    summary="split large triangles into smaller boxes before building (spatial median or EVH)",
-    reference="Karras & Aila 2013, Fast Parallel Construction of High-Quality BVHs, §5.9; "
-    "Dammertz & Keller 2008, The Edge Volume Heuristic",
-    stage="before",
-)
+@register("step", "bvh2+presplit", stage="before")
 def presplit(mesh: TriangleMesh, options: PresplitOptions | None = None) -> BuildRefs:
-    """Return the pre-split references of ``mesh`` (see the module docstring).
+    """Split large triangles into smaller boxes before building (spatial median or EVH).
+
+    Return the pre-split references of ``mesh`` (see the module docstring).
 
     Parameters
     ----------
@@ -485,6 +480,11 @@ def presplit(mesh: TriangleMesh, options: PresplitOptions | None = None) -> Buil
     BuildRefs
         At least one reference per triangle, pieces of triangle ``t`` contiguous and
         in triangle order; ``n_refs <= (1 + budget) · N`` for ``"median"``.
+
+    References
+    ----------
+    Karras & Aila 2013, Fast Parallel Construction of High-Quality BVHs, §5.9;
+    Dammertz & Keller 2008, The Edge Volume Heuristic.
     """
     opt = options or PresplitOptions()
     tri = np.ascontiguousarray(mesh.triangles(), dtype=REAL)

@@ -238,14 +238,16 @@ def _inner_area(left, lo, hi):
     return total
 
 
-@register(
-    "step",
-    "bvh2+reinsert",
-    summary="remove inefficient nodes and reinsert their subtrees where the SAH grows least",
-    reference="Bittner, Hapala, Havran 2013, Fast Insertion-Based Optimization of BVHs",
-)
+@register("step", "bvh2+reinsert")
 def reinsert(bvh: Bvh2, mesh: TriangleMesh, options: ReinsertOptions | None = None) -> Bvh2:
-    """Return ``bvh`` optimized by insertion-based reinsertion (see the module docstring)."""
+    """Remove inefficient nodes and reinsert their subtrees where the SAH grows least.
+
+    Return ``bvh`` optimized by insertion-based reinsertion (see the module docstring).
+
+    References
+    ----------
+    Bittner, Hapala, Havran 2013, Fast Insertion-Based Optimization of BVHs.
+    """
     opt = options or ReinsertOptions()
     if bvh.n_nodes < 5:
         return bvh

@@ -332,14 +332,11 @@ def annealing_schedule(opt: RotateOptions) -> np.ndarray:
     return np.ascontiguousarray(np.outer(peaks, fall).ravel(), dtype=np.float64)
 
 
-@register(
-    "step",
-    "bvh2+rotate",
-    summary="tree rotations: hill climbing or simulated annealing on local subtree swaps",
-    reference="Kensler 2008, Tree Rotations for Improving Bounding Volume Hierarchies",
-)
+@register("step", "bvh2+rotate")
 def rotate(bvh: Bvh2, mesh: TriangleMesh, options: RotateOptions | None = None) -> Bvh2:
-    """Return ``bvh`` improved by tree rotations (see the module docstring).
+    """Tree rotations: hill climbing or simulated annealing on local subtree swaps.
+
+    Return ``bvh`` improved by tree rotations (see the module docstring).
 
     Parameters
     ----------
@@ -352,6 +349,10 @@ def rotate(bvh: Bvh2, mesh: TriangleMesh, options: RotateOptions | None = None) 
     -------
     Bvh2
         Same leaves; SAH cost no higher than the input's.
+
+    References
+    ----------
+    Kensler 2008, Tree Rotations for Improving Bounding Volume Hierarchies.
     """
     opt = options or RotateOptions()
     if bvh.n_nodes < 5:

@@ -440,14 +440,11 @@ def split_leaves_linked(
     return LinkedTree(left, right, lo, hi, first, cnt, bvh.prim_index)
 
 
-@register(
-    "step",
-    "bvh2+treelet",
-    summary="restructure 7-leaf treelets bottom-up into their SAH-optimal form (DP)",
-    reference="Karras & Aila 2013, Fast Parallel Construction of High-Quality BVHs",
-)
+@register("step", "bvh2+treelet")
 def treelet(bvh: Bvh2, mesh: TriangleMesh, options: TreeletOptions | None = None) -> Bvh2:
-    """Return ``bvh`` after treelet restructuring and SAH leaf collapsing (module docstring).
+    """Restructure 7-leaf treelets bottom-up into their SAH-optimal form (DP).
+
+    Return ``bvh`` after treelet restructuring and SAH leaf collapsing (module docstring).
 
     Parameters
     ----------
@@ -460,6 +457,10 @@ def treelet(bvh: Bvh2, mesh: TriangleMesh, options: TreeletOptions | None = None
     -------
     Bvh2
         Same references; SAH cost (same constants) no higher than ``bvh``'s.
+
+    References
+    ----------
+    Karras & Aila 2013, Fast Parallel Construction of High-Quality BVHs.
     """
     opt = options or TreeletOptions()
     max_leaf = np.int32(opt.max_leaf_size)

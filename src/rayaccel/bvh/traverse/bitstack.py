@@ -145,17 +145,19 @@ def trace_rays_py(
 trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 
-@register_traversal(
-    "bvh2.bitstack",
-    summary="stackless ordered traversal with a per-level bitstack and parent links",
-    reference="Áfra & Szirmay-Kalos 2014, Stackless Multi-BVH Traversal for CPU, MIC and GPU",
-)
+@register_traversal("bvh2.bitstack")
 def trace_bvh2_bitstack(
     bvh: Bvh2, mesh: TriangleMesh, options: BitstackOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a binary BVH with a bitstack and parent links.
+    """Stackless ordered traversal with a per-level bitstack and parent links.
+
+    Trace rays through a binary BVH with a bitstack and parent links.
 
     Hits are bit-identical to ``bvh2.stack``'s.
+
+    References
+    ----------
+    Áfra & Szirmay-Kalos 2014, Stackless Multi-BVH Traversal for CPU, MIC and GPU.
     """
     check_trail_depth(bvh, cache, "bvh2.bitstack")
     packed = packed_layout(bvh, mesh, cache)

@@ -425,16 +425,13 @@ make_scratch = cpu_inline(make_scratch_py)
 trace_kernel = body_kernels(make_scratch, cpu_inline(trace_rays_py))
 
 
-@register_traversal(
-    "bvh2.packet",
-    summary="packets of 16 rays of one octant, vector box and triangle tests (coherent rays)",
-    reference="Wald, Slusallek, Benthin, Wagner 2001, Interactive Rendering with Coherent "
-    "Ray Tracing",
-)
+@register_traversal("bvh2.packet")
 def trace_bvh2_packet(
     bvh: Bvh2, mesh: TriangleMesh, options: PacketOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a binary BVH in packets of sixteen consecutive rays.
+    """Packets of 16 rays of one octant, vector box and triangle tests (coherent rays).
+
+    Trace rays through a binary BVH in packets of sixteen consecutive rays.
 
     The pairs layout of ``bvh2.stack`` is derived from the canonical tree on first use
     and shared with it.
@@ -443,5 +440,9 @@ def trace_bvh2_packet(
     ------
     TraversalOverflowError
         Never for trees from rayaccel builders (depth is bounded by ``MAX_DEPTH``).
+
+    References
+    ----------
+    Wald, Slusallek, Benthin, Wagner 2001, Interactive Rendering with Coherent Ray Tracing.
     """
     return pairs_plan(trace_kernel, bvh, mesh, cache)

@@ -180,17 +180,19 @@ def trace_rays_py(
 trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 
-@register_traversal(
-    "bvh2.parent_link",
-    summary="stackless three-state machine over parent and sibling links (distance order)",
-    reference="Hapala et al. 2011, Efficient Stack-less BVH Traversal for Ray Tracing",
-)
+@register_traversal("bvh2.parent_link")
 def trace_bvh2_parent_link(
     bvh: Bvh2, mesh: TriangleMesh, options: ParentLinkOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a binary BVH with parent links and no stack.
+    """Stackless three-state machine over parent and sibling links (distance order).
+
+    Trace rays through a binary BVH with parent links and no stack.
 
     Hits are bit-identical to ``bvh2.stack``'s.
+
+    References
+    ----------
+    Hapala et al. 2011, Efficient Stack-less BVH Traversal for Ray Tracing.
     """
     packed = packed_layout(bvh, mesh, cache)
     linked = linked_layout(packed, cache)

@@ -385,21 +385,21 @@ def trace_rays_py(
 trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 
-@register_traversal(
-    "bvh2.perfect_hash",
-    summary="stackless ordered traversal, keys + bit trail + perfect hash: O(1) backtracking",
-    reference=(
-        "Binder & Keller 2016, Efficient Stackless Hierarchy Traversal on GPUs with "
-        "Backtracking in Constant Time"
-    ),
-)
+@register_traversal("bvh2.perfect_hash")
 def trace_bvh2_perfect_hash(
     bvh: Bvh2, mesh: TriangleMesh, options: PerfectHashOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a binary BVH with backtracking in constant time.
+    """Stackless ordered traversal, keys + bit trail + perfect hash: O(1) backtracking.
+
+    Trace rays through a binary BVH with backtracking in constant time.
 
     Hits are bit-identical to ``bvh2.stack``'s with every combination of the
     building-block switches (all on by default).
+
+    References
+    ----------
+    Binder & Keller 2016, Efficient Stackless Hierarchy Traversal on GPUs with Backtracking in
+    Constant Time.
     """
     check_trail_depth(bvh, cache, "bvh2.perfect_hash")
     packed = packed_layout(bvh, mesh, cache)

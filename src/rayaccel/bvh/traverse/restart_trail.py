@@ -226,17 +226,19 @@ make_scratch = cpu_inline(make_scratch_py)
 trace_kernel = body_kernels(make_scratch, cpu_inline(trace_rays_py))
 
 
-@register_traversal(
-    "bvh2.restart_trail",
-    summary="stackless ordered traversal restarting from the root along a per-level trail",
-    reference="Laine 2010, Restart Trail for Stackless BVH Traversal",
-)
+@register_traversal("bvh2.restart_trail")
 def trace_bvh2_restart_trail(
     bvh: Bvh2, mesh: TriangleMesh, options: RestartTrailOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a binary BVH with a restart trail (and an optional short stack).
+    """Stackless ordered traversal restarting from the root along a per-level trail.
+
+    Trace rays through a binary BVH with a restart trail (and an optional short stack).
 
     Hits are bit-identical to ``bvh2.stack``'s.
+
+    References
+    ----------
+    Laine 2010, Restart Trail for Stackless BVH Traversal.
     """
     check_trail_depth(bvh, cache, "bvh2.restart_trail")
     packed = packed_layout(bvh, mesh, cache)

@@ -99,18 +99,20 @@ def trace_rays_py(
 trace_kernel = body_kernels(no_scratch, cpu_inline(trace_rays_py))
 
 
-@register_traversal(
-    "bvh2.skip",
-    summary="stackless fixed-order walk over pre-order nodes with skip pointers",
-    reference="Smits 1998, Efficiency Issues for Ray Tracing",
-)
+@register_traversal("bvh2.skip")
 def trace_bvh2_skip(
     bvh: Bvh2, mesh: TriangleMesh, options: SkipOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a binary BVH with skip pointers (no stack, fixed child order).
+    """Stackless fixed-order walk over pre-order nodes with skip pointers.
+
+    Trace rays through a binary BVH with skip pointers (no stack, fixed child order).
 
     The closest ``t`` equals ``bvh2.stack``'s bit for bit; the primitive may differ at
     exact ties (see the module docstring).
+
+    References
+    ----------
+    Smits 1998, Efficiency Issues for Ray Tracing.
     """
     packed = packed_layout(bvh, mesh, cache)
     skip = skip_layout(bvh, packed, cache)

@@ -228,16 +228,13 @@ def stack_layout(bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None) ->
     )
 
 
-@register_traversal(
-    "bvh2.stack",
-    default=True,
-    summary="ordered stack traversal, near child first (closest and any hit)",
-    reference="Aila & Laine 2009, Understanding the Efficiency of Ray Traversal on GPUs",
-)
+@register_traversal("bvh2.stack", default=True)
 def trace_bvh2_stack(
     bvh: Bvh2, mesh: TriangleMesh, options: StackOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a binary BVH with an ordered stack.
+    """Ordered stack traversal, near child first (closest and any hit).
+
+    Trace rays through a binary BVH with an ordered stack.
 
     The pairs layout is derived from the canonical tree on first use.
 
@@ -245,6 +242,10 @@ def trace_bvh2_stack(
     ------
     TraversalOverflowError
         Never for trees from rayaccel builders (depth is bounded by ``MAX_DEPTH``).
+
+    References
+    ----------
+    Aila & Laine 2009, Understanding the Efficiency of Ray Traversal on GPUs.
     """
     return pairs_plan(trace_kernel, bvh, mesh, cache)
 

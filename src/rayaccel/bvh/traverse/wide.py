@@ -271,18 +271,20 @@ def wide_bvh(
     )
 
 
-@register_traversal(
-    "bvh2.wide",
-    summary="ordered stack traversal of the 4- or 8-wide collapsed tree, vector box tests",
-    reference="Wald, Benthin, Boulos 2008, Getting Rid of Packets; Dammertz, Hanika, Keller "
-    "2008, Shallow Bounding Volume Hierarchies",
-)
+@register_traversal("bvh2.wide")
 def trace_bvh2_wide(
     bvh: Bvh2, mesh: TriangleMesh, options: WideOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through the wide form of a binary BVH (see the module docstring).
+    """Ordered stack traversal of the 4- or 8-wide collapsed tree, vector box tests.
+
+    Trace rays through the wide form of a binary BVH (see the module docstring).
 
     The derived wide rows are cached under ``"bvh2.wide4"`` or ``"bvh2.wide8"``.
+
+    References
+    ----------
+    Wald, Benthin, Boulos 2008, Getting Rid of Packets;
+    Dammertz, Hanika, Keller 2008, Shallow Bounding Volume Hierarchies.
     """
     wide = wide_bvh(bvh, mesh, cache, options.width)
     return TracePlan(wide_kernels(options.width, options.any_order), wide.arrays())

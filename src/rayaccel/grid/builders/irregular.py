@@ -315,22 +315,23 @@ def expand_cells(box, first, count, pool, leaf_cell, top_res, shift, log_dim, le
     return out, moved.sum()
 
 
-@register(
-    "builder",
-    "grid.irregular",
-    summary="irregular grid: λ1 top grid, power-of-two leaves, SAH merges, expanded exits",
-    reference="Pérard-Gayot, Kalojanov, Slusallek 2017, GPU Ray Tracing using Irregular Grids",
-)
+@register("builder", "grid.irregular")
 def build_irregular_grid(
     mesh: TriangleMesh, options: IrregularOptions | None = None
 ) -> IrregularGrid:
-    """Build an irregular grid over ``mesh``'s triangles (see the module docstring).
+    """Irregular grid: λ1 top grid, power-of-two leaves, SAH merges, expanded exits.
+
+    Build an irregular grid over ``mesh``'s triangles (see the module docstring).
 
     Raises
     ------
     InvalidInputError
         A density asks for more cells than ``max_cells`` or memory allows, or the
         virtual fine grid would exceed ``MAX_FINE_RES`` voxels per axis.
+
+    References
+    ----------
+    Pérard-Gayot, Kalojanov, Slusallek 2017, GPU Ray Tracing using Irregular Grids.
     """
     opts = options or IrregularOptions()
     top, tri, phases, wanted_res = top_level(mesh, opts, "grid.irregular")

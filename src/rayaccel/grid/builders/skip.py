@@ -222,41 +222,46 @@ def _build_skip_grid(
     return dataclasses.replace(add_skip(grid, kind, phases), phase_ms=phases)
 
 
-@register(
-    "builder",
-    "grid.distance",
-    summary="uniform grid plus a chessboard distance field over empty cells (linear time)",
-    reference="Es & Isler 2007, Accelerated regular grid traversals using extended "
-    "anisotropic chessboard distance fields (Devillers thesis §4.1.3)",
-)
+@register("builder", "grid.distance")
 def build_distance_grid(
     mesh: TriangleMesh, options: UniformGridOptions | None = None
 ) -> UniformGrid:
-    """Build ``grid.uniform`` and its distance field (see the module docstring)."""
+    """Uniform grid plus a chessboard distance field over empty cells (linear time).
+
+    Build ``grid.uniform`` and its distance field (see the module docstring).
+
+    References
+    ----------
+    Es & Isler 2007, Accelerated regular grid traversals using extended anisotropic chessboard
+    distance fields (Devillers thesis §4.1.3).
+    """
     return _build_skip_grid(mesh, options, "grid.distance", SKIP_DISTANCE)
 
 
-@register(
-    "builder",
-    "grid.macro_regions",
-    summary="uniform grid plus macro regions: empty space partitioned into empty boxes",
-    reference="Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure "
-    "for Ray Tracing",
-)
+@register("builder", "grid.macro_regions")
 def build_macro_region_grid(
     mesh: TriangleMesh, options: UniformGridOptions | None = None
 ) -> UniformGrid:
-    """Build ``grid.uniform`` and its macro regions (see the module docstring)."""
+    """Uniform grid plus macro regions: empty space partitioned into empty boxes.
+
+    Build ``grid.uniform`` and its macro regions (see the module docstring).
+
+    References
+    ----------
+    Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure for Ray Tracing.
+    """
     return _build_skip_grid(mesh, options, "grid.macro_regions", SKIP_MACRO)
 
 
-@register(
-    "builder",
-    "grid.mipmap",
-    summary="uniform grid plus an occupancy mip-map (pyramid), climbed from empty cells",
-    reference="Devillers 1989 (macro regions) as the thesis varies it: an occupancy mip-map "
-    "traversed hierarchically",
-)
+@register("builder", "grid.mipmap")
 def build_mipmap_grid(mesh: TriangleMesh, options: UniformGridOptions | None = None) -> UniformGrid:
-    """Build ``grid.uniform`` and its occupancy mip-map (see the module docstring)."""
+    """Uniform grid plus an occupancy mip-map (pyramid), climbed from empty cells.
+
+    Build ``grid.uniform`` and its occupancy mip-map (see the module docstring).
+
+    References
+    ----------
+    Devillers 1989 (macro regions) as the thesis varies it: an occupancy mip-map traversed
+    hierarchically.
+    """
     return _build_skip_grid(mesh, options, "grid.mipmap", SKIP_MIPMAP)

@@ -381,21 +381,22 @@ def leaf_level(
     return LeafLevel(sub_res, leaf_first64.astype(INDEX), leaf_size, leaf_start, values)
 
 
-@register(
-    "builder",
-    "grid.two_level",
-    summary="two-level grid: λ1 top grid, per-cell λ2 sub-grids, all leaves binned at once",
-    reference="Kalojanov, Billeter, Slusallek 2011, Two-Level Grids for Ray Tracing on GPUs",
-)
+@register("builder", "grid.two_level")
 def build_two_level_grid(
     mesh: TriangleMesh, options: TwoLevelOptions | None = None
 ) -> TwoLevelGrid:
-    """Build a two-level grid over ``mesh``'s triangles (see the module docstring).
+    """Two-level grid: λ1 top grid, per-cell λ2 sub-grids, all leaves binned at once.
+
+    Build a two-level grid over ``mesh``'s triangles (see the module docstring).
 
     Raises
     ------
     InvalidInputError
         A density asks for more cells than ``max_cells`` or memory allows.
+
+    References
+    ----------
+    Kalojanov, Billeter, Slusallek 2011, Two-Level Grids for Ray Tracing on GPUs.
     """
     opts = options or TwoLevelOptions()
     top, tri, phases, sub_res = top_level(mesh, opts, "grid.two_level")

@@ -382,17 +382,13 @@ def build_uniform(
     return grid, tri
 
 
-@register(
-    "builder",
-    "grid.uniform",
-    default=True,
-    summary="uniform grid, λ cells per primitive, sort-based parallel build with exact overlap",
-    reference="Kalojanov & Slusallek 2009, A Parallel Algorithm for Construction of Uniform Grids",
-)
+@register("builder", "grid.uniform", default=True)
 def build_uniform_grid(
     mesh: TriangleMesh, options: UniformGridOptions | None = None
 ) -> UniformGrid:
-    """Build a uniform grid over ``mesh``'s triangles.
+    """Uniform grid, λ cells per primitive, sort-based parallel build with exact overlap.
+
+    Build a uniform grid over ``mesh``'s triangles.
 
     The grid has no skip data (``grid.skip`` then walks it like ``grid.dda``).
 
@@ -400,6 +396,10 @@ def build_uniform_grid(
     ------
     InvalidInputError
         The density asks for more cells than ``max_cells`` or memory allows.
+
+    References
+    ----------
+    Kalojanov & Slusallek 2009, A Parallel Algorithm for Construction of Uniform Grids.
     """
     grid, _ = build_uniform(mesh, options or UniformGridOptions(), "grid.uniform")
     return grid

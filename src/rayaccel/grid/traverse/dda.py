@@ -322,40 +322,43 @@ def _plan(
     return TracePlan(kernels_for(isinstance(grid, TwoLevelGrid)), walked)
 
 
-@register_traversal(
-    "grid.dda",
-    default=True,
-    summary="3D-DDA cell walk with a per-ray mailbox (closest and any hit)",
-    reference="Amanatides & Woo 1987, A Fast Voxel Traversal Algorithm for Ray Tracing",
-)
+@register_traversal("grid.dda", default=True)
 def trace_grid_dda(
     grid: UniformGrid | TwoLevelGrid | IrregularGrid,
     mesh: TriangleMesh,
     options: DdaOptions,
     cache: LayoutCache,
 ) -> TracePlan:
-    """Trace rays through a uniform grid cell by cell, a two-level one DDA in DDA.
+    """3D-DDA cell walk with a per-ray mailbox (closest and any hit).
+
+    Trace rays through a uniform grid cell by cell, a two-level one DDA in DDA.
 
     Skip data is ignored. An irregular grid is walked cell by cell through its
     expanded boxes (:mod:`rayaccel.grid.traverse.irregular`).
+
+    References
+    ----------
+    Amanatides & Woo 1987, A Fast Voxel Traversal Algorithm for Ray Tracing.
     """
     return _plan(grid, mesh, options, cache, False)
 
 
-@register_traversal(
-    "grid.skip",
-    summary="3D-DDA jumping over the grid's empty boxes (distance field, macro regions, mip-map)",
-    reference="Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure",
-)
+@register_traversal("grid.skip")
 def trace_grid_skip(
     grid: UniformGrid | TwoLevelGrid | IrregularGrid,
     mesh: TriangleMesh,
     options: DdaOptions,
     cache: LayoutCache,
 ) -> TracePlan:
-    """Trace rays through a uniform grid, jumping over empty space with its skip data.
+    """3D-DDA jumping over the grid's empty boxes (distance field, macro regions, mip-map).
+
+    Trace rays through a uniform grid, jumping over empty space with its skip data.
 
     A grid without skip data (``grid.uniform``) is walked cell by cell, and an
     irregular grid as by :func:`trace_grid_dda`.
+
+    References
+    ----------
+    Devillers 1989, The Macro-Regions, an Efficient Space Subdivision Structure.
     """
     return _plan(grid, mesh, options, cache, True)

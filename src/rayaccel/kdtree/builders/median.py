@@ -47,14 +47,16 @@ class KdMedianOptions:
         )
 
 
-@register(
-    "builder",
-    "kdtree.median",
-    summary="spatial-median kd-tree (the longest axis of the cell cut in half)",
-    reference="Kaplan 1985, Space-tracing: a constant time ray-tracer",
-)
+@register("builder", "kdtree.median")
 def build_kdtree_median(mesh: TriangleMesh, options: KdMedianOptions | None = None) -> KdTree:
-    """Build a kd-tree by spatial median splits."""
+    """Spatial-median kd-tree (the longest axis of the cell cut in half).
+
+    Build a kd-tree by spatial median splits.
+
+    References
+    ----------
+    Kaplan 1985, Space-tracing: a constant time ray-tracer.
+    """
     opt = options or KdMedianOptions()
     params = SweepParams(
         MODE_MEDIAN, 1.0, 1.0, 1.0, int(opt.max_depth), int(opt.max_leaf_size),

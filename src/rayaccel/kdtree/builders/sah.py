@@ -71,18 +71,17 @@ class KdSahOptions:
         )
 
 
-@register(
-    "builder",
-    "kdtree.sah",
-    default=True,
-    summary="SAH kd-tree by the O(N log N) event sweep with perfect splits",
-    reference="Wald & Havran 2006, On building fast kd-Trees for Ray Tracing, and on doing "
-    "that in O(N log N)",
-)
+@register("builder", "kdtree.sah", default=True)
 def build_kdtree_sah(mesh: TriangleMesh, options: KdSahOptions | None = None) -> KdTree:
-    """Build a kd-tree with the surface area heuristic.
+    """SAH kd-tree by the O(N log N) event sweep with perfect splits.
+
+    Build a kd-tree with the surface area heuristic.
 
     The tree's depth is at most ``min(max_depth, 8 + 1.3·log2 N)``.
+
+    References
+    ----------
+    Wald & Havran 2006, On building fast kd-Trees for Ray Tracing, and on doing that in O(N log N).
     """
     opt = options or KdSahOptions()
     params = SweepParams(

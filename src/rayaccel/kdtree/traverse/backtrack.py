@@ -61,13 +61,16 @@ def _arrays(kd: KdTree, mesh: TriangleMesh, cache: dict[str, Any] | None) -> Sta
     )
 
 
-@register_traversal(
-    "kdtree.backtrack",
-    summary="kd-backtrack: stackless, each descent from the nearest ancestor still ahead",
-    reference="Foley & Sugerman 2005, KD-Tree Acceleration Structures for a GPU Raytracer",
-)
+@register_traversal("kdtree.backtrack")
 def trace_kdtree_backtrack(
     kd: KdTree, mesh: TriangleMesh, options: KdBacktrackOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a kd-tree with kd-backtrack."""
+    """kd-backtrack: stackless, each descent from the nearest ancestor still ahead.
+
+    Trace rays through a kd-tree with kd-backtrack.
+
+    References
+    ----------
+    Foley & Sugerman 2005, KD-Tree Acceleration Structures for a GPU Raytracer.
+    """
     return TracePlan(trace_kernel(METHOD_BACKTRACK), _arrays(kd, mesh, cache))

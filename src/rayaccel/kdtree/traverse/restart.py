@@ -23,14 +23,17 @@ class KdRestartOptions:
     """Options of ``kdtree.restart`` (none; kept for a uniform API)."""
 
 
-@register_traversal(
-    "kdtree.restart",
-    summary="kd-restart: stackless, every leaf found by a descent from the root",
-    reference="Foley & Sugerman 2005, KD-Tree Acceleration Structures for a GPU Raytracer",
-)
+@register_traversal("kdtree.restart")
 def trace_kdtree_restart(
     kd: KdTree, mesh: TriangleMesh, options: KdRestartOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a kd-tree with kd-restart."""
+    """kd-restart: stackless, every leaf found by a descent from the root.
+
+    Trace rays through a kd-tree with kd-restart.
+
+    References
+    ----------
+    Foley & Sugerman 2005, KD-Tree Acceleration Structures for a GPU Raytracer.
+    """
     arrays = stackless_arrays(kd_trace_layout(kd, mesh, cache))
     return TracePlan(trace_kernel(METHOD_RESTART), arrays)

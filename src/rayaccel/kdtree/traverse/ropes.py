@@ -114,16 +114,19 @@ def rope_layout(kd: KdTree, optimize: bool) -> KdRopes:
     return KdRopes(leaf_box, leaf_rope)
 
 
-@register_traversal(
-    "kdtree.ropes",
-    summary="stackless traversal along leaf-face ropes (leaf boxes, optional rope optimisation)",
-    reference="Popov, Günther, Seidel, Slusallek 2007, Stackless KD-Tree Traversal for High "
-    "Performance GPU Ray Tracing",
-)
+@register_traversal("kdtree.ropes")
 def trace_kdtree_ropes(
     kd: KdTree, mesh: TriangleMesh, options: KdRopesOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a kd-tree along its ropes."""
+    """Stackless traversal along leaf-face ropes (leaf boxes, optional rope optimisation).
+
+    Trace rays through a kd-tree along its ropes.
+
+    References
+    ----------
+    Popov, Günther, Seidel, Slusallek 2007, Stackless KD-Tree Traversal for High Performance GPU Ray
+    Tracing.
+    """
     name = "kdtree.ropes" if options.optimize else "kdtree.ropes_plain"
     ropes = memoised_layout(cache, name, lambda: rope_layout(kd, options.optimize))
     arrays = stackless_arrays(

@@ -37,15 +37,18 @@ class KdShortStackOptions:
             raise InvalidInputError(f"size must be in 1..{STACK_SIZE}, got {self.size}")
 
 
-@register_traversal(
-    "kdtree.short_stack",
-    summary="short stack (a ring of far children) with push-down restarts",
-    reference="Horn, Sugerman, Houston, Hanrahan 2007, Interactive k-D Tree GPU Raytracing",
-)
+@register_traversal("kdtree.short_stack")
 def trace_kdtree_short_stack(
     kd: KdTree, mesh: TriangleMesh, options: KdShortStackOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a kd-tree with a short stack."""
+    """Short stack (a ring of far children) with push-down restarts.
+
+    Trace rays through a kd-tree with a short stack.
+
+    References
+    ----------
+    Horn, Sugerman, Houston, Hanrahan 2007, Interactive k-D Tree GPU Raytracing.
+    """
     arrays = stackless_arrays(
         kd_trace_layout(kd, mesh, cache), ring_size=int(options.size), method=METHOD_SHORT_STACK
     )

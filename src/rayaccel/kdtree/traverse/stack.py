@@ -197,17 +197,18 @@ def trace_kernel(order: int) -> Any:
     return body_kernels(make_scratch, _body(order))
 
 
-@register_traversal(
-    "kdtree.stack",
-    default=True,
-    summary="front-to-back kd-tree traversal with a stack (closest and any hit)",
-    reference="Slusallek, kd-tree traversal (lecture); Havran 2000, Heuristic Ray Shooting "
-    "Algorithms",
-)
+@register_traversal("kdtree.stack", default=True)
 def trace_kdtree_stack(
     kd: KdTree, mesh: TriangleMesh, options: KdStackOptions, cache: LayoutCache
 ) -> TracePlan:
-    """Trace rays through a kd-tree front to back with a stack."""
+    """Front-to-back kd-tree traversal with a stack (closest and any hit).
+
+    Trace rays through a kd-tree front to back with a stack.
+
+    References
+    ----------
+    Slusallek, kd-tree traversal (lecture); Havran 2000, Heuristic Ray Shooting Algorithms.
+    """
     layout = kd_trace_layout(kd, mesh, cache)
     return TracePlan(
         trace_kernel(_ORDERS[options.order]), layout.arrays(), "the tree is deeper than MAX_DEPTH"
