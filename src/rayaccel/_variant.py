@@ -19,6 +19,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from rayaccel._docstrings import SECTION, insert_sections
 from rayaccel.errors import InvalidInputError, UnknownVariantError
 
 Role = Literal["builder", "traversal", "step"]
@@ -199,10 +200,6 @@ refs : BuildRefs, optional
     References to build over (e.g. pre-split triangle parts); default one per triangle.
 """
 
-#: A numpydoc section header: a title line underlined with dashes.
-_SECTION = re.compile(r"^\w[\w ]*\n-{3,}$", re.MULTILINE)
-
-
 def _type_name(annotation: Any) -> str:
     """Return a numpydoc type for an annotation (``"A | B | None"`` -> ``"A or B"``)."""
     text = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
@@ -229,19 +226,8 @@ def shared_sections(func: Callable[..., Any], role: Role) -> str:
 
 
 def with_shared_sections(func: Callable[..., Any], role: Role) -> None:
-    """Add the shared sections to ``func``'s docstring, before its own sections (if any).
-
-    A docstring that has its own ``Parameters`` section is left as it is.
-    """
-    doc = inspect.cleandoc(func.__doc__ or "")
-    shared = shared_sections(func, role)
-    match = _SECTION.search(doc)
-    if not doc or not shared or re.search(r"^Parameters\n-{3,}$", doc, re.MULTILINE):
-        return
-    at = match.start() if match else len(doc)
-    head = doc[:at].rstrip()
-    tail = doc[at:].strip()
-    func.__doc__ = "\n\n".join(part for part in (head, shared.strip(), tail) if part) + "\n"
+    """Add the shared sections to ``func``'s docstring (:func:`insert_sections`)."""
+    insert_sections(func, shared_sections(func, role))
 
 
 REGISTRY: dict[str, Variant] = {}
@@ -282,8 +268,12 @@ def docstring_summary(func: Callable[..., Any]) -> str:
 def docstring_reference(func: Callable[..., Any]) -> str:
     """Return the ``References`` section of ``func``'s docstring as one line ("" if none)."""
     doc = inspect.cleandoc(func.__doc__ or "")
-    found = re.search(r"^References\n-{3,}\n(.*?)(?=^\w[\w ]*\n-{3,}$|\Z)", doc, re.M | re.S)
-    return " ".join(found.group(1).split()).removesuffix(".") if found else ""
+    found = re.search(r"^References\n-{3,}\n", doc, re.MULTILINE)
+    if found is None:
+        return ""
+    following = SECTION.search(doc, found.end())
+    section = doc[found.end() : following.start() if following else len(doc)]
+    return " ".join(section.split()).removesuffix(".")
 
 
 def register(

@@ -104,21 +104,8 @@ def ray_box_exit_py(ox, oy, oz, ix, iy, iz, far_x, far_y, far_z):
     """Return the distance at which the ray leaves the box.
 
     That is the nearest far plane (NaN ignored), enlarged by 2 ulp exactly as in
-    :func:`ray_box_entry_py`.
-
-    Parameters
-    ----------
-    ox, oy, oz : float32
-        Ray origin.
-    ix, iy, iz : float32
-        Reciprocal ray direction (``±inf`` for zero components).
-    far_x, far_y, far_z : float32
-        The far box planes, selected by the sign of each ``inv`` component.
-
-    Returns
-    -------
-    float32
-        The exit distance; ``inf`` when every component of the direction is zero.
+    :func:`ray_box_entry_py`, whose arguments of the same names these are; ``inf``
+    when every component of the direction is zero.
     """
     t1x = (far_x - ox) * ix
     t1y = (far_y - oy) * iy

@@ -43,6 +43,7 @@ import numba
 import numpy as np
 from numba import prange
 
+from rayaccel._docstrings import with_sections
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import STACK_SIZE, Bvh2
@@ -265,6 +266,20 @@ def empty_hits(n: int, precision: str) -> tuple[FloatArray, IntArray, FloatArray
     )
 
 
+#: The parameters of the BVH's whole-batch queries (all hits, counts, pausable traversal).
+BVH_QUERY_PARAMETERS = """\
+Parameters
+----------
+bvh : Bvh2
+mesh : TriangleMesh
+    The mesh ``bvh`` was built over.
+rays : RayBatch
+cache : dict, optional
+    Memo for the derived layouts (an ``Accel`` passes its own).
+"""
+
+
+@with_sections(BVH_QUERY_PARAMETERS)
 def count_all_hits(
     bvh: Bvh2, mesh: TriangleMesh, rays: RayBatch, cache: dict[str, Any] | None = None
 ) -> IntArray:
@@ -272,15 +287,6 @@ def count_all_hits(
 
     Each triangle is counted once per ray, even where the tree references it from
     several leaves (see the module docstring).
-
-    Parameters
-    ----------
-    bvh : Bvh2
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-    cache : dict, optional
-        Memo for the packed layout (an ``Accel`` passes its own).
     """
     counts = np.zeros(rays.n_rays, dtype=np.int32)
     if rays.n_rays == 0:
@@ -292,19 +298,11 @@ def count_all_hits(
     return counts
 
 
+@with_sections(BVH_QUERY_PARAMETERS)
 def list_all_hits(
     bvh: Bvh2, mesh: TriangleMesh, rays: RayBatch, cache: dict[str, Any] | None = None
 ) -> tuple[Int64Array, FloatArray, IntArray, FloatArray, FloatArray]:
     """Return every hit of every ray in ``[tmin, tmax]``, by ray, then ``t``, then primitive.
-
-    Parameters
-    ----------
-    bvh : Bvh2
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-    cache : dict, optional
-        Memo for the packed layout (an ``Accel`` passes its own).
 
     Returns
     -------

@@ -41,12 +41,13 @@ import numpy as np
 from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
+from rayaccel._docstrings import with_sections
 from rayaccel._jit import atomic_fetch_add, cpu_inline, cpu_kernel
 from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2
 from rayaccel.bvh.layouts.wide import ref_column
+from rayaccel.bvh.traverse.all_hits import BVH_QUERY_PARAMETERS, empty_hits, sort_hits
 from rayaccel.bvh.traverse.all_hits import INSERTION_SORT_MAX as INSERTION_SORT_MAX
-from rayaccel.bvh.traverse.all_hits import empty_hits, sort_hits
 from rayaccel.bvh.traverse.building_blocks import lane_planes
 from rayaccel.bvh.traverse.wide import wide_bvh
 from rayaccel.config import parallel_section
@@ -267,20 +268,14 @@ def _gather_kernel(chunk_start, chunk_count, splits, src_t, src_prim, src_u, src
             out_v[target + k] = src_v[source + k]
 
 
+@with_sections(BVH_QUERY_PARAMETERS)
 def list_all_hits_wide(
     bvh: Bvh2, mesh: TriangleMesh, rays: RayBatch, cache: dict[str, Any] | None = None
 ) -> tuple[Int64Array, RealArray, IntArray, RealArray, RealArray]:
     """Return every hit of every ray in ``[tmin, tmax]``, by ray, then ``t``, then triangle.
 
-    Parameters
-    ----------
-    bvh : Bvh2
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-        In the mesh's precision (float64 rays for a float64 mesh).
-    cache : dict, optional
-        Memo for the wide layout (``"bvh2.wide8"``, shared with ``bvh2.wide``).
+    The rays are in the mesh's precision (float64 rays for a float64 mesh); the wide
+    layout is memoised as ``"bvh2.wide8"``, shared with ``bvh2.wide``.
 
     Returns
     -------

@@ -51,6 +51,7 @@ import numpy as np
 from numba import prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
+from rayaccel._docstrings import with_sections
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register_pausable
 from rayaccel.bvh.layouts.bvh2 import (
@@ -62,6 +63,7 @@ from rayaccel.bvh.layouts.bvh2 import (
 )
 from rayaccel.bvh.layouts.perfect_hash import ENTRY_BYTES, PerfectHash, build_perfect_hash
 from rayaccel.bvh.layouts.stackless_links import LINK_BYTES, link_packed
+from rayaccel.bvh.traverse.all_hits import BVH_QUERY_PARAMETERS
 from rayaccel.bvh.traverse.building_blocks import (
     INF32,
     box_entry,
@@ -607,20 +609,11 @@ class TraversalState:
 
 
 @register_pausable("bvh2.perfect_hash")
+@with_sections(BVH_QUERY_PARAMETERS)
 def start_traversal(
     bvh: Bvh2, mesh: TriangleMesh, rays: RayBatch, cache: dict[str, Any] | None = None
 ) -> TraversalState:
-    """Return a :class:`TraversalState` for ``rays``, positioned before the first hit.
-
-    Parameters
-    ----------
-    bvh : Bvh2
-    mesh : TriangleMesh
-        The mesh ``bvh`` was built over.
-    rays : RayBatch
-    cache : dict, optional
-        Memo for the derived layouts (an ``Accel`` passes its own).
-    """
+    """Return a :class:`TraversalState` for ``rays``, positioned before the first hit."""
     check_trail_depth(bvh, cache, "traversal_state")
     packed = packed_layout(bvh, mesh, cache)
     return TraversalState(keyed_layout(packed, cache), rays)

@@ -42,7 +42,7 @@ from rayaccel._variant import register
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
 from rayaccel.grid.builders.two_level import leaf_level, top_level
-from rayaccel.grid.builders.uniform import UniformGridOptions
+from rayaccel.grid.builders.uniform import UniformGridOptions, check_density
 from rayaccel.grid.layouts.irregular import MAX_FINE_RES, IrregularGrid, leaf_boxes, voxel_cell
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -78,10 +78,8 @@ class IrregularOptions:
     max_refs_per_prim: float = 16.0
 
     def __post_init__(self) -> None:
-        for name in ("top_density", "leaf_density"):
-            value = getattr(self, name)
-            if not (0.0 < value <= 1024.0):
-                raise InvalidInputError(f"{name}: expected 0 < λ <= 1024, got {value}")
+        check_density("top_density", self.top_density)
+        check_density("leaf_density", self.leaf_density)
         if not 0.0 <= self.merge_threshold <= 1.0:
             raise InvalidInputError(
                 f"merge_threshold: expected 0 <= α <= 1, got {self.merge_threshold}"

@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.grid.builders.uniform import UniformGridOptions, build_uniform
 from rayaccel.grid.layouts.uniform import (
@@ -102,6 +102,18 @@ def chessboard_distance(cell_start, rx, ry, rz):
     return out
 
 
+@cpu_inline
+def _cells_free(taken, rx, ry, x0, x1, y0, y1, z0, z1):
+    """Return whether no cell of the box ``[x0, x1] × [y0, y1] × [z0, z1]`` is taken."""
+    for zz in range(z0, z1 + 1):
+        for yy in range(y0, y1 + 1):
+            row = rx * (yy + ry * zz)
+            for xx in range(x0, x1 + 1):
+                if taken[row + xx]:
+                    return False
+    return True
+
+
 @cpu_kernel()
 def macro_regions(cell_start, rx, ry, rz):
     """Return the ``(n_cells, 6)`` int16 region ``(x0, y0, z0, x1, y1, z1)`` of every cell."""
@@ -120,33 +132,16 @@ def macro_regions(cell_start, rx, ry, rz):
                     continue
                 if taken[c]:
                     continue
+                # Grow the box from (x, y, z) along x, then y, then z while the next
+                # row, then slab, of cells is free.
                 x1 = x
                 while x1 + 1 < rx and not taken[c + (x1 + 1 - x)]:
                     x1 += 1
                 y1 = y
-                while y1 + 1 < ry:
-                    row = rx * (y1 + 1 + ry * z)
-                    free = True
-                    for xx in range(x, x1 + 1):
-                        if taken[row + xx]:
-                            free = False
-                            break
-                    if not free:
-                        break
+                while y1 + 1 < ry and _cells_free(taken, rx, ry, x, x1, y1 + 1, y1 + 1, z, z):
                     y1 += 1
                 z1 = z
-                while z1 + 1 < rz:
-                    free = True
-                    for yy in range(y, y1 + 1):
-                        row = rx * (yy + ry * (z1 + 1))
-                        for xx in range(x, x1 + 1):
-                            if taken[row + xx]:
-                                free = False
-                                break
-                        if not free:
-                            break
-                    if not free:
-                        break
+                while z1 + 1 < rz and _cells_free(taken, rx, ry, x, x1, y, y1, z1 + 1, z1 + 1):
                     z1 += 1
                 for zz in range(z, z1 + 1):
                     for yy in range(y, y1 + 1):

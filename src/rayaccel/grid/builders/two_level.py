@@ -41,6 +41,7 @@ from rayaccel.grid.builders.uniform import (
     PRIM_CHUNK,
     UniformGridOptions,
     build_uniform,
+    check_density,
 )
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import MAX_RES_AXIS, SKIP_DISTANCE, cell_margin
@@ -75,10 +76,8 @@ class TwoLevelOptions:
     max_refs_per_prim: float = 16.0
 
     def __post_init__(self) -> None:
-        for name in ("top_density", "leaf_density"):
-            value = getattr(self, name)
-            if not (0.0 < value <= 1024.0):
-                raise InvalidInputError(f"{name}: expected 0 < λ <= 1024, got {value}")
+        check_density("top_density", self.top_density)
+        check_density("leaf_density", self.leaf_density)
         if self.skip not in ("none", "distance"):
             raise InvalidInputError(f"skip: expected 'none' or 'distance', got {self.skip!r}")
         UniformGridOptions(1.0, self.max_cells, self.max_refs, self.max_refs_per_prim)

@@ -56,6 +56,12 @@ from rayaccel.scene.mesh import TriangleMesh
 PRIM_CHUNK = 4096
 
 
+def check_density(name: str, value: float) -> None:
+    """Raise ``InvalidInputError`` unless the density option ``name`` lies in ``(0, 1024]``."""
+    if not (0.0 < value <= 1024.0):
+        raise InvalidInputError(f"{name}: expected 0 < λ <= 1024, got {value}")
+
+
 @dataclass(frozen=True, slots=True)
 class UniformGridOptions:
     """Options of :func:`build_uniform_grid` (and the skipping builders on it).
@@ -84,8 +90,7 @@ class UniformGridOptions:
     max_refs_per_prim: float = 16.0
 
     def __post_init__(self) -> None:
-        if not (0.0 < self.density <= 1024.0):
-            raise InvalidInputError(f"density: expected 0 < λ <= 1024, got {self.density}")
+        check_density("density", self.density)
         if not 1 <= self.max_cells <= 2**31 - 2:
             raise InvalidInputError(f"max_cells: expected 1..2**31-2, got {self.max_cells}")
         if not 1 <= self.max_refs <= 2**31 - 1:
