@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from rayaccel._atomic import write_bytes_atomic
+from rayaccel._docstrings import with_sections
 from rayaccel.dtypes import REAL
 from rayaccel.errors import InvalidInputError, SceneFileError
 from rayaccel.rays.batch import RayBatch
@@ -145,13 +146,18 @@ def _parse_metadata(path: Path, member: np.ndarray) -> dict[str, Any]:
     return value
 
 
+#: The parameter of the ray-set readers.
+_PATH_PARAMETER = """\
+Parameters
+----------
+path : str or path-like
+    The ``.npz`` ray-set file.
+"""
+
+
+@with_sections(_PATH_PARAMETER)
 def load_rays(path: str | os.PathLike[str]) -> RayBatch:
     """Read a ray batch written by :func:`save_rays`.
-
-    Parameters
-    ----------
-    path : str or path-like
-        The ``.npz`` ray-set file.
 
     Returns
     -------
@@ -190,13 +196,9 @@ def load_rays(path: str | os.PathLike[str]) -> RayBatch:
         raise SceneFileError(f"{source}: invalid ray set ({exc})") from exc
 
 
+@with_sections(_PATH_PARAMETER)
 def load_ray_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Read the metadata stored by :func:`save_rays`.
-
-    Parameters
-    ----------
-    path : str or path-like
-        The ``.npz`` ray-set file.
 
     Returns
     -------

@@ -36,8 +36,10 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from rayaccel._docstrings import with_sections
 from rayaccel.errors import SceneFileError
 from rayaccel.scene.polygons import (
+    READER_PARAMETERS,
     F64Array,
     I64Array,
     Locator,
@@ -97,15 +99,9 @@ class _Rows:
     uniform_length: dict[str, int] = field(default_factory=dict)
 
 
+@with_sections(READER_PARAMETERS)
 def parse_ply(data: bytes, *, source: str = "<ply>") -> tuple[F64Array, I64Array]:
     """Parse a PLY file into vertex and triangle arrays.
-
-    Parameters
-    ----------
-    data : bytes
-        The whole file.
-    source : str
-        Name used in error messages, normally the path.
 
     Returns
     -------

@@ -26,6 +26,15 @@ from rayaccel.errors import SceneFileError
 
 F64Array = npt.NDArray[np.float64]
 I64Array = npt.NDArray[np.int64]
+#: The parameters of the binary-capable readers (PLY, STL).
+READER_PARAMETERS = """\
+Parameters
+----------
+data : bytes
+    The whole file.
+source : str
+    Name used in error messages, normally the path.
+"""
 #: ``where(row)`` names the location of row ``row`` in the file, e.g. ``"line 12"``.
 Locator = Callable[[int], str]
 

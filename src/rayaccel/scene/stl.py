@@ -23,8 +23,15 @@ import re
 
 import numpy as np
 
+from rayaccel._docstrings import with_sections
 from rayaccel.errors import SceneFileError
-from rayaccel.scene.polygons import F64Array, I64Array, Locator, check_vertices
+from rayaccel.scene.polygons import (
+    READER_PARAMETERS,
+    F64Array,
+    I64Array,
+    Locator,
+    check_vertices,
+)
 
 _HEADER = 84
 _RECORD = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
@@ -40,15 +47,9 @@ _FACETS = re.compile(f"(?:{_FACET.pattern})*")
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
+@with_sections(READER_PARAMETERS)
 def parse_stl(data: bytes, *, source: str = "<stl>") -> tuple[F64Array, I64Array]:
     """Parse a binary or ASCII STL file into vertex and triangle arrays.
-
-    Parameters
-    ----------
-    data : bytes
-        The whole file.
-    source : str
-        Name used in error messages, normally the path.
 
     Returns
     -------
