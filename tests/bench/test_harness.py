@@ -227,3 +227,18 @@ def test_compile_phase_makes_every_kernel_the_timings_call(monkeypatch):
     assert trace_kernel.cache_info().currsize == 8
     variants = {r["variant"] for r in result.records if r["record"] == "compile"}
     assert {"closest serial", "any+stats parallel", "build"} <= variants
+
+
+def test_round_robin_settles_before_each_untimed_run(monkeypatch):
+    # Each function runs twice per round (untimed, then timed), after a pause that lets
+    # the previous function's spinning worker threads go idle.
+    events = []
+    monkeypatch.setattr(harness.time, "sleep", lambda s: events.append(("sleep", s)))
+    fns = [lambda: events.append("a") or 1, lambda: events.append("b") or 2]
+    seconds, results = harness.timed_round_robin(fns, 2, settle=0.25)
+    assert events == [("sleep", 0.25), "a", "a", ("sleep", 0.25), "b", "b"] * 2
+    assert results == [1, 2]
+    assert [s.shape for s in seconds] == [(2,), (2,)]
+    events.clear()
+    harness.timed_round_robin(fns, 1, settle=0)
+    assert events == ["a", "a", "b", "b"]

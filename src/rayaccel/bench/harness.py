@@ -318,8 +318,12 @@ def _timed(fn: Callable[[], Any], repeats: int) -> tuple[np.ndarray, Any]:
     return seconds, result
 
 
+#: Seconds :func:`timed_round_robin` waits before each function's untimed run.
+SETTLE_SECONDS = 0.05
+
+
 def timed_round_robin(
-    fns: Sequence[Callable[[], Any]], repeats: int
+    fns: Sequence[Callable[[], Any]], repeats: int, settle: float = SETTLE_SECONDS
 ) -> tuple[list[np.ndarray], list[Any]]:
     """Time each of ``fns`` once per round for ``repeats`` rounds, each right after an untimed run.
 
@@ -327,7 +331,10 @@ def timed_round_robin(
     repeated passes would, so no pass pays for the previous function's; the rounds
     spread every function over the same stretch of time, so a noisy phase of the
     machine falls on every function alike (``docs/performance.md``, "Tracing against
-    Embree", records what the other orders gave).
+    Embree", records what the other orders gave). Before each untimed run the round
+    waits ``settle`` seconds: the worker threads of the function before (numba's
+    OpenMP, Embree's TBB, Dr.Jit's pool) spin a while after their work, and would
+    otherwise take cores from the next function's timed pass.
 
     Parameters
     ----------
@@ -335,6 +342,8 @@ def timed_round_robin(
         The functions to time, called with no arguments.
     repeats : int
         Timed rounds.
+    settle : float
+        Seconds to wait before each function's untimed run (0: none).
 
     Returns
     -------
@@ -347,6 +356,8 @@ def timed_round_robin(
     seconds = [np.empty(repeats) for _ in fns]
     for i in range(repeats):
         for k, fn in enumerate(fns):
+            if settle > 0:
+                time.sleep(settle)
             fn()
             start = time.perf_counter()
             results[k] = fn()
