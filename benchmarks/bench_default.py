@@ -27,7 +27,7 @@ import numba
 import numpy as np
 
 import rayaccel
-from rayaccel.bench.harness import timed_round_robin
+from rayaccel.bench.harness import OWN_POOL, timed_round_robin
 from rayaccel.bench.peers import get_peer
 from rayaccel.bench.raysets import standard_raysets
 from rayaccel.rays.batch import HitBatch, RayBatch
@@ -117,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                         _check(reference, fn(), query, label)
                     else:
                         _check_peer(reference, fn(), query, label, scale)
-                seconds, _ = timed_round_robin(fns, args.repeats)
+                pools = [OWN_POOL] * len(OWN) + args.peers
+                seconds, _ = timed_round_robin(fns, args.repeats, pools)
                 rates = [rays.n_rays / np.median(s) / 1e6 for s in seconds]
                 base = rates[len(OWN)]
                 chosen = accel.query_traversal(rays)

@@ -421,6 +421,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         validate=args.validate,
         seed=args.seed,
         warmup_triangles=args.warmup_triangles,
+        settle_ms=args.settle_ms,
     )
     writer = report.JsonlWriter(args.json) if args.json else None
     records: list[dict[str, Any]] = []
@@ -730,6 +731,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--option", action="append", metavar="K=V",
                    help="option passed to every builder")  # fmt: skip
+    p.add_argument("--settle-ms", type=float, default=50.0,
+                   help="pause (ms) before a pass on another thread pool than the pass "
+                        "before, so its spinning threads are idle (default 50)")  # fmt: skip
     p.add_argument("--warmup-triangles", type=_positive_int, default=40_000,
                    help="size of the compile warm-up mesh (default 40000, enough to "
                         "reach the parallel build paths)")  # fmt: skip

@@ -25,6 +25,7 @@ OURS_FIELDS = {"nodes_per_ray", "prims_per_ray", "stats_overhead", "counters_mea
 TINY = [
     "--width", "12", "--height", "10", "--repeats", "1", "--build-repeats", "1",
     "--validate", "40", "--warmup-triangles", "600", "--threads", "1", "--no-progress",
+    "--settle-ms", "0",  # no pauses between the peers' passes and ours (tested on its own)
 ]  # fmt: skip
 
 
@@ -229,16 +230,17 @@ def test_compile_phase_makes_every_kernel_the_timings_call(monkeypatch):
     assert {"closest serial", "any+stats parallel", "build"} <= variants
 
 
-def test_round_robin_settles_before_each_untimed_run(monkeypatch):
-    # Each function runs twice per round (untimed, then timed), after a pause that lets
-    # the previous function's spinning worker threads go idle.
+def test_round_robin_settles_when_the_thread_pool_changes(monkeypatch):
+    # Each function runs twice per round (untimed, then timed); a function on another
+    # thread pool than the one before waits for that pool's spinning threads to go idle.
     events = []
-    monkeypatch.setattr(harness.time, "sleep", lambda s: events.append(("sleep", s)))
-    fns = [lambda: events.append("a") or 1, lambda: events.append("b") or 2]
-    seconds, results = harness.timed_round_robin(fns, 2, settle=0.25)
-    assert events == [("sleep", 0.25), "a", "a", ("sleep", 0.25), "b", "b"] * 2
-    assert results == [1, 2]
-    assert [s.shape for s in seconds] == [(2,), (2,)]
+    monkeypatch.setattr(harness.time, "sleep", lambda s: events.append(f"pause {s}"))
+    fns = [lambda k=k: events.append(k) or k for k in "abc"]
+    seconds, results = harness.timed_round_robin(fns, 2, ["ours", "ours", "peer"], settle=0.5)
+    once = ["a", "a", "b", "b", "pause 0.5", "c", "c"]
+    assert events == ["pause 0.5", *once, "pause 0.5", *once]
+    assert results == ["a", "b", "c"]
+    assert [s.shape for s in seconds] == [(2,), (2,), (2,)]
     events.clear()
-    harness.timed_round_robin(fns, 1, settle=0)
-    assert events == ["a", "a", "b", "b"]
+    harness.timed_round_robin(fns, 1)
+    assert events == ["a", "a", "b", "b", "c", "c"]

@@ -99,6 +99,12 @@ def completed_cells(records: Iterable[Mapping[str, Any]]) -> dict[CellKey, Recor
     return {cell_key(r): dict(r) for r in records if r.get("record") in ("trace", "invalid")}
 
 
+#: Seconds :func:`timed_round_robin` waits when the thread pool changes.
+SETTLE_SECONDS = 0.05
+#: The pool name of rayaccel's own passes (numba's threads) for :func:`timed_round_robin`.
+OWN_POOL = "rayaccel"
+
+
 @dataclass(frozen=True)
 class BenchConfig:
     """What to measure.
@@ -132,6 +138,9 @@ class BenchConfig:
         Seed of the ray sets and of the validation sample.
     warmup_triangles : int
         Size of the compile warm-up mesh.
+    settle_ms : float
+        Pause before a pass whose thread pool differs from the pass before it, so the
+        other system's spinning threads are idle (:func:`timed_round_robin`).
     done : mapping
         Records of an earlier, interrupted run of the same command, by :func:`cell_key`
         (:func:`completed_cells`): their cells are not measured again, and the
@@ -152,6 +161,7 @@ class BenchConfig:
     validate: int = 200
     seed: int = 0
     warmup_triangles: int = 40_000
+    settle_ms: float = SETTLE_SECONDS * 1e3
     done: Mapping[CellKey, Record] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -163,6 +173,8 @@ class BenchConfig:
                 raise InvalidInputError(f"{name}: expected an int >= 1, got {value!r}")
         if not isinstance(self.validate, int) or self.validate < 0:
             raise InvalidInputError(f"validate: expected an int >= 0, got {self.validate!r}")
+        if not 0.0 <= self.settle_ms <= 10_000.0:
+            raise InvalidInputError(f"settle_ms: expected 0..10000, got {self.settle_ms!r}")
         parse_kinds(list(self.ray_kinds))
         for key in self.builders:
             registry.get_chain(key)
@@ -318,12 +330,11 @@ def _timed(fn: Callable[[], Any], repeats: int) -> tuple[np.ndarray, Any]:
     return seconds, result
 
 
-#: Seconds :func:`timed_round_robin` waits before each function's untimed run.
-SETTLE_SECONDS = 0.05
-
-
 def timed_round_robin(
-    fns: Sequence[Callable[[], Any]], repeats: int, settle: float = SETTLE_SECONDS
+    fns: Sequence[Callable[[], Any]],
+    repeats: int,
+    pools: Sequence[str] | None = None,
+    settle: float = SETTLE_SECONDS,
 ) -> tuple[list[np.ndarray], list[Any]]:
     """Time each of ``fns`` once per round for ``repeats`` rounds, each right after an untimed run.
 
@@ -331,10 +342,11 @@ def timed_round_robin(
     repeated passes would, so no pass pays for the previous function's; the rounds
     spread every function over the same stretch of time, so a noisy phase of the
     machine falls on every function alike (``docs/performance.md``, "Tracing against
-    Embree", records what the other orders gave). Before each untimed run the round
-    waits ``settle`` seconds: the worker threads of the function before (numba's
-    OpenMP, Embree's TBB, Dr.Jit's pool) spin a while after their work, and would
-    otherwise take cores from the next function's timed pass.
+    Embree", records what the other orders gave). Before the untimed run of a function
+    whose thread pool differs from the one run before it, the round waits ``settle``
+    seconds: worker threads (numba's OpenMP, Embree's TBB, Dr.Jit's pool)
+    spin a while after their work and would otherwise take cores from the other
+    system's timed pass.
 
     Parameters
     ----------
@@ -342,8 +354,11 @@ def timed_round_robin(
         The functions to time, called with no arguments.
     repeats : int
         Timed rounds.
+    pools : sequence of str, optional
+        The thread pool each function runs on (:data:`OWN_POOL` for rayaccel's passes,
+        a peer's name for its); None: no waiting.
     settle : float
-        Seconds to wait before each function's untimed run (0: none).
+        The wait, in seconds (:data:`SETTLE_SECONDS` by default).
 
     Returns
     -------
@@ -354,10 +369,12 @@ def timed_round_robin(
     """
     results: list[Any] = [None] * len(fns)
     seconds = [np.empty(repeats) for _ in fns]
+    previous = None
     for i in range(repeats):
         for k, fn in enumerate(fns):
-            if settle > 0:
+            if pools is not None and pools[k] != previous:
                 time.sleep(settle)
+                previous = pools[k]
             fn()
             start = time.perf_counter()
             results[k] = fn()
@@ -849,7 +866,10 @@ class _Run:
         reference = self.reference_queries.get(kind) if kind in rates else None
         if reference is not None:
             passes.append(reference)
-        timings, results = timed_round_robin(passes, config.repeats)
+        pools = [OWN_POOL, OWN_POOL, "reference"][: len(passes)]
+        timings, results = timed_round_robin(
+            passes, config.repeats, pools, config.settle_ms / 1e3
+        )
         seconds, stats_seconds, hits = timings[0], timings[1], results[1]
         timing = _timing_fields(rays.n_rays, seconds)
         record.update(timing)

@@ -38,6 +38,7 @@ import numpy as np
 
 from rayaccel import api
 from rayaccel.bench.harness import (
+    OWN_POOL,
     RTOL_OURS,
     count_mismatches,
     counter_summary,
@@ -266,7 +267,7 @@ def _timing(cell: Cell, config: SweepConfig, mesh: TriangleMesh, rayset: RaySet)
         fns.append(functools.partial(call, prepared))
         peers.append(name)
     with _Threads(cell.threads):
-        seconds, _ = timed_round_robin(fns, config.repeats)
+        seconds, _ = timed_round_robin(fns, config.repeats, [OWN_POOL, *peers])
     ours = float(np.median(seconds[0]))
     record: Record = {
         "n_rays": rays.n_rays,
