@@ -188,6 +188,9 @@ def test_parsers():
         parse_kinds("camera")
     with pytest.raises(InvalidInputError):
         harness.BenchConfig(scenes=["cornell-box"], threads=[10_000])
+    for settle in (-1.0, float("nan"), 1e9, "50", True):
+        with pytest.raises(InvalidInputError, match="settle_ms"):
+            harness.BenchConfig(scenes=["cornell-box"], settle_ms=settle)
 
 
 @pytest.mark.parametrize("name", list(peers.PEERS))

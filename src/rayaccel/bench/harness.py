@@ -173,8 +173,11 @@ class BenchConfig:
                 raise InvalidInputError(f"{name}: expected an int >= 1, got {value!r}")
         if not isinstance(self.validate, int) or self.validate < 0:
             raise InvalidInputError(f"validate: expected an int >= 0, got {self.validate!r}")
-        if not 0.0 <= self.settle_ms <= 10_000.0:
-            raise InvalidInputError(f"settle_ms: expected 0..10000, got {self.settle_ms!r}")
+        settle = self.settle_ms
+        if isinstance(settle, bool) or not isinstance(settle, (int, float)) or not (
+            0.0 <= settle <= 10_000.0
+        ):
+            raise InvalidInputError(f"settle_ms: expected 0..10000, got {settle!r}")
         parse_kinds(list(self.ray_kinds))
         for key in self.builders:
             registry.get_chain(key)
