@@ -5,8 +5,8 @@ once: each quantity is one ``<16 x float>`` operation over the rays (the recipro
 direction, the watertight test's shear axes and constants, Woop et al. 2013, the sheared
 origin, the culling pad and the hit interval), with every operation of the scalar code
 in the same order, so each lane's values are the scalar prologue's bit for bit (the
-tests check it lane by lane). The scalar prologue spends four divisions and a
-dozen selects per ray, a third of a shadow ray's time in a packet traversal.
+tests check it lane by lane). The scalar prologue's four divisions and dozen selects
+per ray become that many vector operations per packet.
 
 :data:`packet_setup` ``(origin, direction, tmin, tmax, first, last, root_box, lanes,
 pad_row, base, axes) -> int32`` reads rays ``first`` to ``first + 15`` (those from
