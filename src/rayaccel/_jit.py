@@ -142,7 +142,7 @@ def _without_parallel_warning(compile_: Callable[..., Any]) -> Callable[..., Any
 
 
 def cpu_kernel(
-    *, parallel: bool = False, simplify: bool = False
+    *, parallel: bool = False, simplify: bool = False, exact: bool = False
 ) -> Callable[[Callable[..., Any]], Any]:
     """Return the ``njit`` decorator used for every CPU kernel.
 
@@ -159,6 +159,10 @@ def cpu_kernel(
         two inlined split functions per node, they were a fifth of its time).
         numba's "no parallel transformation" warning is silenced while the kernel
         compiles.
+    exact : bool
+        Leave out the ``contract`` fast-math flag, so no multiply and add are fused:
+        products round as numpy's do, for kernels whose results must match numpy's
+        bit for bit on every machine.
     """
     if parallel and simplify:
         raise ValueError("simplify is for serial kernels (parallel kernels already simplify)")
@@ -166,7 +170,7 @@ def cpu_kernel(
         parallel=dict(SIMPLIFY_ONLY) if simplify else parallel,
         cache=True,
         nogil=True,
-        fastmath=set(FASTMATH),
+        fastmath=set(FASTMATH) - {"contract"} if exact else set(FASTMATH),
         error_model="numpy",
     )
 

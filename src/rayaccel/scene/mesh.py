@@ -26,6 +26,7 @@ import numpy.typing as npt
 
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray, check_precision
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels import triangle_rows
 from rayaccel.validation import (
     NORMAL_FLOOR,
     check_coordinates,
@@ -218,14 +219,10 @@ class TriangleMesh:
         would miss it, or report ``t = -inf`` when ``tmin = -inf``. It is zero-area by
         definition instead (docs/reliability.md, "Numbers"); a float64 mesh hits it.
         """
-        tri = self.triangles() if self.vertices64 is None else self.vertices64[self.faces]
-        wide = tri.astype(np.float64)
-        cross = np.cross(wide[:, 1] - wide[:, 0], wide[:, 2] - wide[:, 0])
-        doubled_area = np.abs(cross[:, 0]) + np.abs(cross[:, 1]) + np.abs(cross[:, 2])
-        degenerate = ~(doubled_area >= NORMAL_FLOOR[self.precision])
-        rows: RealArray = tri.reshape(-1, 9).copy()
-        rows[degenerate, 3:6] = rows[degenerate, 0:3]
-        rows[degenerate, 6:9] = rows[degenerate, 0:3]
+        positions = self.vertices if self.vertices64 is None else self.vertices64
+        rows: RealArray = triangle_rows.hit_rows(
+            positions, self.faces, float(NORMAL_FLOOR[self.precision])
+        )
         return rows
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:

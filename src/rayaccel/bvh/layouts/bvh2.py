@@ -32,6 +32,7 @@ from rayaccel._jit import cpu_kernel
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray
 from rayaccel.errors import StructureInvariantError
 from rayaccel.kernels.structure_checks import check_prims_listed
+from rayaccel.kernels.triangle_rows import gather_rows
 
 #: Deepest tree any builder may emit; traversal stacks hold STACK_SIZE >= MAX_DEPTH entries.
 MAX_DEPTH = 56
@@ -432,8 +433,7 @@ def pack_bvh2(bvh: Bvh2, hit_rows: RealArray) -> PackedBvh2:
     leaf_first = np.empty(n_leaves, dtype=INDEX)
     leaf_count = np.empty(n_leaves, dtype=INDEX)
     _pack_kernel(bvh.arrays(), rows, ref_of_node, leaf_first, leaf_count)
-    rows_dtype = np.float64 if hit_rows.dtype == np.float64 else REAL
-    tri = np.ascontiguousarray(hit_rows[bvh.prim_index], dtype=rows_dtype)
+    tri = gather_rows(hit_rows, bvh.prim_index)
     root_box = np.empty(6, dtype=REAL)
     root_box[0::2] = bvh.node_lo[0]
     root_box[1::2] = bvh.node_hi[0]

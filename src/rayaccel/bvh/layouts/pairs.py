@@ -28,7 +28,9 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from numba import prange
 
+from rayaccel._jit import cpu_kernel
 from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, PackedBvh2, aligned_zeros
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 
@@ -68,34 +70,37 @@ class PairsBvh2:
         return int(self.rows.nbytes)
 
 
-def _inline_leaf(
-    ref: IntArray, leaf_first: IntArray, leaf_count: IntArray
-) -> tuple[IntArray, IntArray]:
-    """Map packed references (``~leaf`` for leaves) to ``(~first triangle, count)``.
+@cpu_kernel(parallel=True)
+def _permute_rows(source, leaf_first, leaf_count, rows):
+    """Write the pairs rows from the packed rows ``source``, one row per iteration.
 
-    Inner references pass through with count 0. Every tree has at least one leaf.
+    Each child's six planes move from the packed row's structure-of-children order to
+    plane-by-plane order, and a leaf child's reference ``~leaf`` becomes ``~first
+    triangle`` with its count beside it (an inner child keeps its row and count 0).
     """
-    is_leaf = ref < 0
-    leaf = np.where(is_leaf, ~ref, 0)
-    inlined = np.where(is_leaf, ~leaf_first[leaf], ref)
-    count = np.where(is_leaf, leaf_count[leaf], 0)
-    return inlined.astype(INDEX), count.astype(INDEX)
+    ints = rows.view(np.int32)
+    source_ints = source.view(np.int32)
+    for r in prange(source.shape[0]):
+        for plane in range(6):
+            for child in range(2):
+                rows[r, 2 * plane + child] = source[r, 6 * child + plane]
+        for child in range(2):
+            ref = source_ints[r, REF_COLUMN + child]
+            count = 0
+            if ref < 0:
+                count = leaf_count[~ref]
+                ref = ~leaf_first[~ref]
+            ints[r, REF_COLUMN + child] = ref
+            ints[r, COUNT_COLUMN + child] = count
 
 
 def pairs_layout(packed: PackedBvh2) -> PairsBvh2:
     """Derive the pairs rows from the packed binary layout (same row order)."""
-    n_rows = packed.rows.shape[0]
-    rows = aligned_zeros((n_rows, 16), REAL, CACHE_LINE)
-    source = packed.rows
-    for plane in range(6):
-        for child in range(2):
-            rows[:, 2 * plane + child] = source[:, 6 * child + plane]
-    ints = rows.view(np.int32)
-    for child in range(2):
-        ref, count = _inline_leaf(
-            source.view(np.int32)[:, REF_COLUMN + child], packed.leaf_first, packed.leaf_count
-        )
-        ints[:, REF_COLUMN + child] = ref
-        ints[:, COUNT_COLUMN + child] = count
-    root, root_count = _inline_leaf(packed.root_ref[:1], packed.leaf_first, packed.leaf_count)
-    return PairsBvh2(rows, packed, np.array([root[0], root_count[0]], dtype=INDEX))
+    rows = aligned_zeros((packed.rows.shape[0], 16), REAL, CACHE_LINE)
+    _permute_rows(packed.rows, packed.leaf_first, packed.leaf_count, rows)
+    root = int(packed.root_ref[0])
+    root_count = 0
+    if root < 0:
+        root_count = int(packed.leaf_count[~root])
+        root = ~int(packed.leaf_first[~root])
+    return PairsBvh2(rows, packed, np.array([root, root_count], dtype=INDEX))

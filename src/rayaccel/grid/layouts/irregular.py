@@ -38,11 +38,11 @@ from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import StructureInvariantError
 from rayaccel.grid.layouts.uniform import (
     ListedRefs,
-    gather_rows,
     interleaved_box,
     validate_box,
     validate_lists,
 )
+from rayaccel.kernels.triangle_rows import gather_rows
 
 #: Largest virtual fine grid resolution along one axis (voxel coordinates stay exact
 #: in float32 arithmetic well below 2**24).

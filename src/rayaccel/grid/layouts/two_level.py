@@ -26,10 +26,10 @@ from rayaccel.errors import StructureInvariantError
 from rayaccel.grid.layouts.uniform import (
     ListedRefs,
     UniformGrid,
-    gather_rows,
     interleaved_box,
     validate_lists,
 )
+from rayaccel.kernels.triangle_rows import gather_rows
 
 
 class TwoLevelTrace(NamedTuple):

@@ -38,11 +38,10 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
-from numba import prange
 
-from rayaccel._jit import cpu_kernel
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import StructureInvariantError
+from rayaccel.kernels.triangle_rows import gather_rows
 
 SKIP_NONE = 0
 SKIP_DISTANCE = 1
@@ -428,13 +427,3 @@ def with_mailbox(layout: Layout, mailbox: int) -> Layout:
     """Return a grid traversal layout with its mailbox size set (a ``(1,)`` int32 array)."""
     updated: Layout = layout._replace(mailbox=np.array([mailbox], dtype=INDEX))
     return updated
-
-
-@cpu_kernel(parallel=True)
-def gather_rows(rows, index):
-    """Return ``rows[index]`` (parallel gather)."""
-    out = np.empty((index.shape[0], rows.shape[1]), dtype=rows.dtype)
-    for i in prange(index.shape[0]):
-        for k in range(rows.shape[1]):
-            out[i, k] = rows[index[i], k]
-    return out

@@ -35,6 +35,7 @@ from rayaccel.kernels.box_grow import load_box, store_box
 from rayaccel.kernels.overlap import triangle_box_overlap
 from rayaccel.kernels.structure_checks import check_prims_listed
 from rayaccel.kernels.triangle import triangle_edges64
+from rayaccel.kernels.triangle_rows import gather_rows
 
 #: Deepest tree any kd builder may emit; traversal stacks hold STACK_SIZE >= MAX_DEPTH entries.
 MAX_DEPTH = 60
@@ -576,7 +577,7 @@ def trace_layout(kd: KdTree, hit_rows: FloatArray) -> KdTraceLayout:
         nodes=kd.nodes,
         leaf_first=kd.leaf_first,
         leaf_count=kd.leaf_count,
-        tri=np.ascontiguousarray(hit_rows[kd.prim_index]),
+        tri=gather_rows(hit_rows, kd.prim_index),
         tri_prim=np.ascontiguousarray(kd.prim_index),
         root_box=root_box,
     )
