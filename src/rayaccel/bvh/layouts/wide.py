@@ -168,8 +168,8 @@ def wide_layout(packed: PackedBvh2, width: int = 8) -> WideBvh:
         # A single leaf: no inner rows; the traversal starts at the leaf.
         rows = aligned_zeros((1, floats), REAL, CACHE_LINE)
         return WideBvh(rows, packed, np.array([root], dtype=INDEX), width)
+    # At most one wide row per binary inner node. The zeroed buffer's pages past the rows
+    # written are never touched, so the view of the rows costs no memory beyond them.
     rows = aligned_zeros((n_inner, floats), REAL, CACHE_LINE)
     n_rows = _collapse_kernel(packed.rows, packed.rows.view(np.int32), root, rows, width)
-    trimmed = aligned_zeros((n_rows, floats), REAL, CACHE_LINE)
-    trimmed[:] = rows[:n_rows]
-    return WideBvh(trimmed, packed, np.array([0], dtype=INDEX), width)
+    return WideBvh(rows[:n_rows], packed, np.array([0], dtype=INDEX), width)
