@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rayaccel.kernels.triangle_rows import gather_rows, hit_rows
+from rayaccel.kernels.triangle_rows import gather_rows, hit_rows, triangle_corners
 from rayaccel.scene.mesh import TriangleMesh
 from rayaccel.validation import NORMAL_FLOOR
 
@@ -97,3 +97,29 @@ def test_gather_rows_is_fancy_indexing(dtype) -> None:
     assert out.dtype == dtype
     assert out.flags.c_contiguous
     assert np.array_equal(out, rows[index])
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_triangle_corners_are_fancy_indexing(precision: str) -> None:
+    mesh = _mixed_mesh(precision, 2)
+    corners = mesh.triangles()
+    assert corners.dtype == np.float32
+    assert corners.flags.c_contiguous
+    assert np.array_equal(corners, mesh.vertices[mesh.faces])
+    if mesh.vertices64 is not None:
+        assert np.array_equal(
+            triangle_corners(mesh.vertices64, mesh.faces), mesh.vertices64[mesh.faces]
+        )
+
+
+@pytest.mark.parametrize("n_faces", [1, 5, 63, 64, 65, 1000])
+def test_corner_bounds_cover_only_referenced_vertices(n_faces: int) -> None:
+    rng = np.random.default_rng(n_faces)
+    vertices = rng.normal(size=(300, 3)).astype(np.float32)
+    vertices[0] = [1e6, -1e6, 1e6]  # never referenced
+    faces = rng.integers(1, 300, size=(n_faces, 3)).astype(np.int32)
+    lo, hi = TriangleMesh(vertices, faces).bounds()
+    used = vertices[faces.reshape(-1)]
+    assert lo.dtype == hi.dtype == np.float32
+    assert lo.tolist() == used.min(axis=0).tolist()
+    assert hi.tolist() == used.max(axis=0).tolist()

@@ -1,6 +1,9 @@
-"""Triangle rows for the intersection kernels: made from a mesh, gathered by a reference array.
+"""Triangle corners and rows: gathered from a mesh's vertices, and by a reference array.
 
-Every traversal layout holds its triangles as ``(n, 9)`` rows (three corners) in its
+:func:`triangle_corners` is the ``(F, 3, 3)`` corner array builders read
+(:meth:`rayaccel.scene.mesh.TriangleMesh.triangles`), gathered in parallel, and
+:func:`corner_bounds` the box of the corners (``TriangleMesh.bounds``). Every traversal
+layout holds its triangles as ``(n, 9)`` rows (three corners) in its
 own reference order, so a leaf or cell streams contiguous memory
 (:mod:`rayaccel.trace.leaf`). :func:`hit_rows` makes the mesh's rows in one parallel
 pass: the corners gathered from the vertex array, and a triangle whose doubled area is
@@ -19,6 +22,46 @@ import numpy as np
 from numba import prange
 
 from rayaccel._jit import cpu_kernel
+
+
+@cpu_kernel(parallel=True)
+def triangle_corners(vertices, faces):
+    """Return the ``(F, 3, 3)`` corners ``vertices[faces]`` (parallel gather)."""
+    n = faces.shape[0]
+    corners = np.empty((n, 3, 3), dtype=vertices.dtype)
+    for f in prange(n):
+        for c in range(3):
+            v = faces[f, c]
+            for k in range(3):
+                corners[f, c, k] = vertices[v, k]
+    return corners
+
+
+#: Work chunks of :func:`corner_bounds` (each keeps its own partial box).
+BOUNDS_CHUNKS = 64
+
+
+@cpu_kernel(parallel=True)
+def corner_bounds(vertices, faces):
+    """Return ``(lo, hi)``, the box of the vertices ``faces`` reference (float32)."""
+    n = faces.shape[0]
+    part_lo = np.full((BOUNDS_CHUNKS, 3), np.inf, dtype=np.float32)
+    part_hi = np.full((BOUNDS_CHUNKS, 3), -np.inf, dtype=np.float32)
+    step = (n + BOUNDS_CHUNKS - 1) // BOUNDS_CHUNKS
+    for chunk in prange(BOUNDS_CHUNKS):
+        for f in range(chunk * step, min(n, (chunk + 1) * step)):
+            for c in range(3):
+                v = faces[f, c]
+                for k in range(3):
+                    x = vertices[v, k]
+                    part_lo[chunk, k] = min(part_lo[chunk, k], x)
+                    part_hi[chunk, k] = max(part_hi[chunk, k], x)
+    lo = np.empty(3, dtype=np.float32)
+    hi = np.empty(3, dtype=np.float32)
+    for k in range(3):
+        lo[k] = part_lo[:, k].min()
+        hi[k] = part_hi[:, k].max()
+    return lo, hi
 
 
 @cpu_kernel(parallel=True, exact=True)

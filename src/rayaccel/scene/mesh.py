@@ -186,7 +186,8 @@ class TriangleMesh:
 
     def triangles(self) -> FloatArray:
         """Return the ``(F, 3, 3)`` float32 corner positions of every triangle."""
-        return np.ascontiguousarray(self.vertices[self.faces])
+        corners: FloatArray = triangle_rows.triangle_corners(self.vertices, self.faces)
+        return corners
 
     def triangles64(self) -> npt.NDArray[np.float64]:
         """Return the ``(F, 3, 3)`` float64 corners of a float64 mesh's triangles.
@@ -198,7 +199,10 @@ class TriangleMesh:
         """
         if self.vertices64 is None:
             raise InvalidInputError(f"{self.name}: not a float64 mesh")
-        return np.ascontiguousarray(self.vertices64[self.faces], dtype=np.float64)
+        corners: npt.NDArray[np.float64] = triangle_rows.triangle_corners(
+            self.vertices64, self.faces
+        )
+        return corners
 
     def hit_rows(self) -> RealArray:
         """Return the ``(F, 9)`` corner rows the intersection kernels test.
@@ -227,8 +231,10 @@ class TriangleMesh:
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
         """Return ``(lo, hi)``, the float32 bounding box of the referenced vertices."""
-        used = self.vertices[self.faces.reshape(-1)]
-        return used.min(axis=0), used.max(axis=0)
+        lo: FloatArray
+        hi: FloatArray
+        lo, hi = triangle_rows.corner_bounds(self.vertices, self.faces)
+        return lo, hi
 
     def areas(self) -> FloatArray:
         """Return the ``(F,)`` float32 triangle areas (computed in float64)."""
