@@ -12,6 +12,7 @@ import reference
 from rayaccel import registry
 from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH, Bvh2, pack_bvh2
 from rayaccel.errors import InvalidInputError, StructureInvariantError
+from rayaccel.rays.batch import RayBatch
 
 BUILDERS = [pytest.param(k, id=k) for k in registry.keys("builder", "bvh2")]
 
@@ -309,3 +310,19 @@ def test_packed_layout_matches_canonical(builder):
     assert np.array_equal(arrays.root_box[0::2], bvh.node_lo[0])
     assert np.array_equal(arrays.root_box[1::2], bvh.node_hi[0])
     assert packed.nbytes() > 0
+
+
+def test_default_queries_do_not_make_the_packed_rows():
+    """The pairs and wide rows come from the canonical tree: the packed rows stay unmade."""
+    mesh = MESHES["icosphere2"]()
+    accel = rayaccel.build(mesh, "bvh2.binned_sah")
+    rays = RayBatch(np.zeros((64, 3)), np.random.default_rng(0).normal(size=(64, 3)))
+    hits = {t: accel.trace(rays, traversal=t) for t in ("bvh2.packet", "bvh2.wide", "bvh2.stack")}
+    packed = accel.derived("bvh2.packed")
+    assert not packed.has_rows
+    before = packed.nbytes()
+    assert np.array_equal(hits["bvh2.wide"].t, hits["bvh2.stack"].t)
+    # A traversal over the packed rows makes them on first use, from the same tree.
+    assert np.array_equal(accel.trace(rays, traversal="bvh2.bitstack").t, hits["bvh2.stack"].t)
+    assert packed.has_rows
+    assert packed.nbytes() == before + packed.rows.nbytes

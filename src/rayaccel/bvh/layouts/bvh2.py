@@ -23,10 +23,11 @@ Packed layout (:class:`PackedBvh2`, Aila & Laine 2009 §3, derived once per acce
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
+from numba import prange
 
 from rayaccel._jit import cpu_kernel
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray
@@ -338,28 +339,52 @@ def aligned_zeros(shape: tuple[int, ...], dtype: type, alignment: int) -> np.nda
 
 @dataclass(frozen=True, slots=True, eq=False)
 class PackedBvh2:
-    """Aila–Laine style packed BVH2 (see the module docstring)."""
+    """Aila–Laine style packed BVH2 (see the module docstring).
 
-    rows: np.ndarray  # (n_inner, 16) float32 buffer
+    The leaf tables and triangle rows are made at once; the inner rows only when a
+    traversal first reads :attr:`rows` (the default queries' pairs and wide rows are
+    derived from the canonical tree directly, so they never need them).
+    """
+
     leaf_first: IntArray
     leaf_count: IntArray
     tri: RealArray
     tri_prim: IntArray
     root_box: FloatArray
     root_ref: IntArray
+    source: Bvh2  # the canonical tree the rows are made from
+    ref_of_node: IntArray  # the packed reference of each canonical node
+    _made: list[np.ndarray] = field(default_factory=list)  # the rows, once made
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The ``(n_inner, 16)`` float32 rows (at least one), made on first use."""
+        if not self._made:
+            n_inner = self.source.n_nodes - self.source.n_leaves
+            rows = aligned_zeros((max(n_inner, 1), 16), REAL, CACHE_LINE)
+            _rows_kernel(self.source.arrays(), self.ref_of_node, rows)
+            if not self._made:
+                self._made.append(rows)
+        return self._made[0]
+
+    @property
+    def has_rows(self) -> bool:
+        """Whether :attr:`rows` has been made."""
+        return bool(self._made)
 
     def arrays(self) -> PackedArrays:
         """Return the arrays as a NamedTuple kernels take as one argument."""
         return PackedArrays(*row_arrays(self.rows, self), self.root_ref)
 
     def nbytes(self) -> int:
-        """Return the packed size in bytes."""
+        """Return the packed size in bytes (the rows once made)."""
         return int(
-            self.rows.nbytes
+            sum(rows.nbytes for rows in self._made)
             + self.leaf_first.nbytes
             + self.leaf_count.nbytes
             + self.tri.nbytes
             + self.tri_prim.nbytes
+            + self.ref_of_node.nbytes
         )
 
 
@@ -383,14 +408,14 @@ def row_arrays(
 
 
 @cpu_kernel()
-def _pack_kernel(bvh, rows, ref_of_node, leaf_first, leaf_count):
-    """Fill the packed rows; ``ref_of_node`` maps canonical nodes to packed references."""
-    ints = rows.view(np.int32)
-    n = bvh.node_count.shape[0]
-    # Number inner rows and leaves in canonical (depth-first) order.
+def _number_kernel(bvh, ref_of_node, leaf_first, leaf_count):
+    """Give inner rows and leaves their numbers in canonical (depth-first) order.
+
+    ``ref_of_node`` maps canonical nodes to packed references (a row, or ``~leaf``).
+    """
     n_inner = 0
     n_leaf = 0
-    for i in range(n):
+    for i in range(bvh.node_count.shape[0]):
         if bvh.node_count[i] == 0:
             ref_of_node[i] = n_inner
             n_inner += 1
@@ -399,8 +424,13 @@ def _pack_kernel(bvh, rows, ref_of_node, leaf_first, leaf_count):
             leaf_first[n_leaf] = bvh.node_first[i]
             leaf_count[n_leaf] = bvh.node_count[i]
             n_leaf += 1
-    # Each inner row stores both children's interleaved boxes and references.
-    for i in range(n):
+
+
+@cpu_kernel(parallel=True)
+def _rows_kernel(bvh, ref_of_node, rows):
+    """Fill each inner row with both children's interleaved boxes and references."""
+    ints = rows.view(np.int32)
+    for i in prange(bvh.node_count.shape[0]):
         if bvh.node_count[i] != 0:
             continue
         row = ref_of_node[i]
@@ -425,24 +455,22 @@ def pack_bvh2(bvh: Bvh2, hit_rows: RealArray) -> PackedBvh2:
         ``TriangleMesh.hit_rows()`` of the mesh the tree was built over; the gathered
         ``tri`` keeps their dtype (float64 for a float64 mesh, traced in float64).
     """
-    n = bvh.n_nodes
     n_leaves = bvh.n_leaves
-    n_inner = n - n_leaves
-    rows = aligned_zeros((max(n_inner, 1), 16), REAL, CACHE_LINE)
-    ref_of_node = np.empty(n, dtype=INDEX)
+    ref_of_node = np.empty(bvh.n_nodes, dtype=INDEX)
     leaf_first = np.empty(n_leaves, dtype=INDEX)
     leaf_count = np.empty(n_leaves, dtype=INDEX)
-    _pack_kernel(bvh.arrays(), rows, ref_of_node, leaf_first, leaf_count)
+    _number_kernel(bvh.arrays(), ref_of_node, leaf_first, leaf_count)
     tri = gather_rows(hit_rows, bvh.prim_index)
     root_box = np.empty(6, dtype=REAL)
     root_box[0::2] = bvh.node_lo[0]
     root_box[1::2] = bvh.node_hi[0]
     return PackedBvh2(
-        rows=rows,
         leaf_first=leaf_first,
         leaf_count=leaf_count,
         tri=tri,
         tri_prim=np.ascontiguousarray(bvh.prim_index),
         root_box=root_box,
         root_ref=np.array([ref_of_node[0]], dtype=INDEX),
+        source=bvh,
+        ref_of_node=ref_of_node,
     )

@@ -18,8 +18,8 @@ column  content (float32 row of 16; columns 12–15 are int32)
 ======  =====================================================================
 
 Rows keep the packed layout's depth-first order and the triangle rows are the packed
-layout's (:class:`~rayaccel.bvh.layouts.bvh2.PackedBvh2`), so the derivation is a column
-permutation plus two leaf-table lookups per row.
+layout's (:class:`~rayaccel.bvh.layouts.bvh2.PackedBvh2`); each row is written from the
+canonical tree's two children and two leaf-table lookups.
 """
 
 from __future__ import annotations
@@ -71,33 +71,40 @@ class PairsBvh2:
 
 
 @cpu_kernel(parallel=True)
-def _permute_rows(source, leaf_first, leaf_count, rows):
-    """Write the pairs rows from the packed rows ``source``, one row per iteration.
+def _pair_rows(bvh, ref_of_node, leaf_first, leaf_count, rows):
+    """Write the pairs rows from the canonical tree, one inner node per iteration.
 
-    Each child's six planes move from the packed row's structure-of-children order to
-    plane-by-plane order, and a leaf child's reference ``~leaf`` becomes ``~first
-    triangle`` with its count beside it (an inner child keeps its row and count 0).
+    Row ``ref_of_node[i]`` of inner node ``i`` gets its two children's planes side by
+    side, and a leaf child's reference becomes ``~first triangle`` with its count beside
+    it (an inner child keeps its row and count 0).
     """
     ints = rows.view(np.int32)
-    source_ints = source.view(np.int32)
-    for r in prange(source.shape[0]):
-        for plane in range(6):
-            for child in range(2):
-                rows[r, 2 * plane + child] = source[r, 6 * child + plane]
-        for child in range(2):
-            ref = source_ints[r, REF_COLUMN + child]
+    for i in prange(bvh.node_count.shape[0]):
+        if bvh.node_count[i] != 0:
+            continue
+        row = ref_of_node[i]
+        for c in range(2):
+            child = bvh.node_first[i] + c
+            for a in range(3):
+                rows[row, 4 * a + c] = bvh.node_lo[child, a]
+                rows[row, 4 * a + 2 + c] = bvh.node_hi[child, a]
+            ref = ref_of_node[child]
             count = 0
             if ref < 0:
                 count = leaf_count[~ref]
                 ref = ~leaf_first[~ref]
-            ints[r, REF_COLUMN + child] = ref
-            ints[r, COUNT_COLUMN + child] = count
+            ints[row, REF_COLUMN + c] = ref
+            ints[row, COUNT_COLUMN + c] = count
 
 
 def pairs_layout(packed: PackedBvh2) -> PairsBvh2:
-    """Derive the pairs rows from the packed binary layout (same row order)."""
-    rows = aligned_zeros((packed.rows.shape[0], 16), REAL, CACHE_LINE)
-    _permute_rows(packed.rows, packed.leaf_first, packed.leaf_count, rows)
+    """Derive the pairs rows of ``packed`` (same row order) from its canonical tree.
+
+    The packed layout's own rows are not needed (nor made).
+    """
+    tree = packed.source
+    rows = aligned_zeros((max(tree.n_nodes - tree.n_leaves, 1), 16), REAL, CACHE_LINE)
+    _pair_rows(tree.arrays(), packed.ref_of_node, packed.leaf_first, packed.leaf_count, rows)
     root = int(packed.root_ref[0])
     root_count = 0
     if root < 0:

@@ -93,59 +93,57 @@ class WideBvh:
 
 
 @cpu_kernel()
-def _collapse_kernel(bin_box, bin_ref, root, rows, width):
-    """Fill ``rows`` with the wide nodes over the packed binary rows; return how many."""
+def _collapse_kernel(bvh, ref_of_node, rows, width):
+    """Fill ``rows`` with the wide nodes over the canonical binary tree; return how many.
+
+    The tree's root must be an inner node. Leaves get the packed layout's ``~leaf``
+    references (``ref_of_node``).
+    """
     ints = rows.view(np.int32)
     n_rows = 1
     queue = np.empty(rows.shape[0], dtype=np.int32)
-    queue[0] = root
-    cand_box = np.empty((MAX_WIDTH, 6), dtype=np.float32)
-    cand_ref = np.empty(MAX_WIDTH, dtype=np.int32)
+    queue[0] = 0
+    cand = np.empty(MAX_WIDTH, dtype=np.int32)
     for w in range(rows.shape[0]):
         if w >= n_rows:
             break
-        b = queue[w]
-        # Start from the binary node's two children (interleaved boxes in the packed row).
-        for c in range(2):
-            for k in range(6):
-                cand_box[c, k] = bin_box[b, 6 * c + k]
-            cand_ref[c] = bin_ref[b, 12 + c]
+        # Start from the binary node's two children.
+        first = bvh.node_first[queue[w]]
+        cand[0] = first
+        cand[1] = first + 1
         count = 2
         # Open the inner child with the largest surface area until ``width`` children.
         while count < width:
             best = -1
             best_area = np.float32(-1.0)
             for c in range(count):
-                if cand_ref[c] >= 0:
-                    ex = cand_box[c, 1] - cand_box[c, 0]
-                    ey = cand_box[c, 3] - cand_box[c, 2]
-                    ez = cand_box[c, 5] - cand_box[c, 4]
+                if bvh.node_count[cand[c]] == 0:
+                    ex = bvh.node_hi[cand[c], 0] - bvh.node_lo[cand[c], 0]
+                    ey = bvh.node_hi[cand[c], 1] - bvh.node_lo[cand[c], 1]
+                    ez = bvh.node_hi[cand[c], 2] - bvh.node_lo[cand[c], 2]
                     area = ex * ey + ey * ez + ez * ex
                     if area > best_area:
                         best_area = area
                         best = c
             if best < 0:
                 break
-            opened = cand_ref[best]
-            for k in range(6):
-                cand_box[best, k] = bin_box[opened, k]
-                cand_box[count, k] = bin_box[opened, 6 + k]
-            cand_ref[best] = bin_ref[opened, 12]
-            cand_ref[count] = bin_ref[opened, 13]
+            opened = bvh.node_first[cand[best]]
+            cand[best] = opened
+            cand[count] = opened + 1
             count += 1
         # Write the row (structure of arrays; empty lanes get the box every ray misses).
         for c in range(width):
             for a in range(3):
                 if c < count:
-                    rows[w, 2 * a * width + c] = cand_box[c, 2 * a]
-                    rows[w, (2 * a + 1) * width + c] = cand_box[c, 2 * a + 1]
+                    rows[w, 2 * a * width + c] = bvh.node_lo[cand[c], a]
+                    rows[w, (2 * a + 1) * width + c] = bvh.node_hi[cand[c], a]
                 else:
                     rows[w, 2 * a * width + c] = np.inf
                     rows[w, (2 * a + 1) * width + c] = -np.inf
             if c < count:
-                ref = cand_ref[c]
+                ref = ref_of_node[cand[c]]
                 if ref >= 0:
-                    queue[n_rows] = ref
+                    queue[n_rows] = cand[c]
                     ref = n_rows
                     n_rows += 1
                 ints[w, 6 * width + c] = ref
@@ -158,11 +156,15 @@ def _collapse_kernel(bin_box, bin_ref, root, rows, width):
 
 
 def wide_layout(packed: PackedBvh2, width: int = 8) -> WideBvh:
-    """Derive the ``width``-wide rows (4 or 8) from the packed binary layout."""
+    """Derive the ``width``-wide rows (4 or 8) of ``packed`` from its canonical tree.
+
+    The packed layout's own rows are not needed (nor made).
+    """
     if width not in WIDTHS:
         raise InvalidInputError(f"width: expected one of {WIDTHS}, got {width}")
     root = int(packed.root_ref[0])
-    n_inner = packed.rows.shape[0]
+    tree = packed.source
+    n_inner = tree.n_nodes - tree.n_leaves
     floats = row_floats(width)
     if root < 0:
         # A single leaf: no inner rows; the traversal starts at the leaf.
@@ -171,5 +173,5 @@ def wide_layout(packed: PackedBvh2, width: int = 8) -> WideBvh:
     # At most one wide row per binary inner node. The zeroed buffer's pages past the rows
     # written are never touched, so the view of the rows costs no memory beyond them.
     rows = aligned_zeros((n_inner, floats), REAL, CACHE_LINE)
-    n_rows = _collapse_kernel(packed.rows, packed.rows.view(np.int32), root, rows, width)
+    n_rows = _collapse_kernel(tree.arrays(), packed.ref_of_node, rows, width)
     return WideBvh(rows[:n_rows], packed, np.array([0], dtype=INDEX), width)
