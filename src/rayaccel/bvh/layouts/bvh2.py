@@ -362,7 +362,8 @@ class PackedBvh2:
         if not self._made:
             n_inner = self.source.n_nodes - self.source.n_leaves
             rows = aligned_zeros((max(n_inner, 1), 16), REAL, CACHE_LINE)
-            _rows_kernel(self.source.arrays(), self.ref_of_node, rows)
+            tables = (self.ref_of_node, self.leaf_first, self.leaf_count)
+            child_rows(self.source.arrays(), *tables, rows, False)
             if not self._made:
                 self._made.append(rows)
         return self._made[0]
@@ -427,8 +428,15 @@ def _number_kernel(bvh, ref_of_node, leaf_first, leaf_count):
 
 
 @cpu_kernel(parallel=True)
-def _rows_kernel(bvh, ref_of_node, rows):
-    """Fill each inner row with both children's interleaved boxes and references."""
+def child_rows(bvh, ref_of_node, leaf_first, leaf_count, rows, pairs):
+    """Fill the 16-float row of every inner node from its two children, one node per iteration.
+
+    ``pairs`` False: the packed layout (child ``c``'s planes interleaved from column
+    ``6c``, references at 12 and 13, zeros at 14 and 15); True: the pairs layout of
+    :mod:`rayaccel.bvh.layouts.pairs` (plane ``k`` of child ``c`` at column ``2k + c``,
+    a leaf child's reference inlined as ``~first triangle`` with its count at ``14 + c``).
+    Row ``ref_of_node[i]`` belongs to inner node ``i``.
+    """
     ints = rows.view(np.int32)
     for i in prange(bvh.node_count.shape[0]):
         if bvh.node_count[i] != 0:
@@ -437,11 +445,16 @@ def _rows_kernel(bvh, ref_of_node, rows):
         for c in range(2):
             child = bvh.node_first[i] + c
             for a in range(3):
-                rows[row, 6 * c + 2 * a] = bvh.node_lo[child, a]
-                rows[row, 6 * c + 2 * a + 1] = bvh.node_hi[child, a]
-            ints[row, 12 + c] = ref_of_node[child]
-        ints[row, 14] = 0
-        ints[row, 15] = 0
+                lo_column = 4 * a + c if pairs else 6 * c + 2 * a
+                rows[row, lo_column] = bvh.node_lo[child, a]
+                rows[row, lo_column + (2 if pairs else 1)] = bvh.node_hi[child, a]
+            ref = ref_of_node[child]
+            count = 0
+            if pairs and ref < 0:
+                count = leaf_count[~ref]
+                ref = ~leaf_first[~ref]
+            ints[row, 12 + c] = ref
+            ints[row, 14 + c] = count
 
 
 def pack_bvh2(bvh: Bvh2, hit_rows: RealArray) -> PackedBvh2:

@@ -28,10 +28,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from numba import prange
 
-from rayaccel._jit import cpu_kernel
-from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, PackedBvh2, aligned_zeros
+from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, PackedBvh2, aligned_zeros, child_rows
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 
 #: Column of child ``c``'s reference and of its leaf count.
@@ -70,33 +68,6 @@ class PairsBvh2:
         return int(self.rows.nbytes)
 
 
-@cpu_kernel(parallel=True)
-def _pair_rows(bvh, ref_of_node, leaf_first, leaf_count, rows):
-    """Write the pairs rows from the canonical tree, one inner node per iteration.
-
-    Row ``ref_of_node[i]`` of inner node ``i`` gets its two children's planes side by
-    side, and a leaf child's reference becomes ``~first triangle`` with its count beside
-    it (an inner child keeps its row and count 0).
-    """
-    ints = rows.view(np.int32)
-    for i in prange(bvh.node_count.shape[0]):
-        if bvh.node_count[i] != 0:
-            continue
-        row = ref_of_node[i]
-        for c in range(2):
-            child = bvh.node_first[i] + c
-            for a in range(3):
-                rows[row, 4 * a + c] = bvh.node_lo[child, a]
-                rows[row, 4 * a + 2 + c] = bvh.node_hi[child, a]
-            ref = ref_of_node[child]
-            count = 0
-            if ref < 0:
-                count = leaf_count[~ref]
-                ref = ~leaf_first[~ref]
-            ints[row, REF_COLUMN + c] = ref
-            ints[row, COUNT_COLUMN + c] = count
-
-
 def pairs_layout(packed: PackedBvh2) -> PairsBvh2:
     """Derive the pairs rows of ``packed`` (same row order) from its canonical tree.
 
@@ -104,7 +75,7 @@ def pairs_layout(packed: PackedBvh2) -> PairsBvh2:
     """
     tree = packed.source
     rows = aligned_zeros((max(tree.n_nodes - tree.n_leaves, 1), 16), REAL, CACHE_LINE)
-    _pair_rows(tree.arrays(), packed.ref_of_node, packed.leaf_first, packed.leaf_count, rows)
+    child_rows(tree.arrays(), packed.ref_of_node, packed.leaf_first, packed.leaf_count, rows, True)
     root = int(packed.root_ref[0])
     root_count = 0
     if root < 0:
