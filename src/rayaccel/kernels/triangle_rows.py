@@ -1,19 +1,18 @@
-"""Triangle corners and rows: gathered from a mesh's vertices, and by a reference array.
+"""A mesh's triangles as arrays: corners, their box, and the rows the intersection tests read.
 
-:func:`triangle_corners` is the ``(F, 3, 3)`` corner array builders read
-(:meth:`rayaccel.scene.mesh.TriangleMesh.triangles`), gathered in parallel, and
-:func:`corner_bounds` the box of the corners (``TriangleMesh.bounds``). Every traversal
-layout holds its triangles as ``(n, 9)`` rows (three corners) in its
-own reference order, so a leaf or cell streams contiguous memory
-(:mod:`rayaccel.trace.leaf`). :func:`hit_rows` makes the mesh's rows in one parallel
-pass: the corners gathered from the vertex array, and a triangle whose doubled area is
-below the rows' smallest normal number collapsed to its first corner
-(:meth:`rayaccel.scene.mesh.TriangleMesh.hit_rows` says why). :func:`gather_rows` puts
-rows into a structure's reference order.
+Parallel passes over the face array, each giving the same array as the numpy fancy
+indexing it stands for (see docs/performance.md for why they are kernels):
 
-The area test is compiled without fast-math contraction (``exact=True``): its cross
-product then rounds as numpy's does, so a float64 triangle is called degenerate
-exactly when the unfused products say so, on every machine.
+- :func:`triangle_corners`: the ``(F, 3, 3)`` corners ``vertices[faces]`` that builders
+  read (:meth:`rayaccel.scene.mesh.TriangleMesh.triangles`);
+- :func:`corner_bounds`: the box of the referenced vertices (``TriangleMesh.bounds``);
+- :func:`hit_rows`: the ``(F, 9)`` rows the intersection tests read, a triangle whose
+  doubled area is below the rows' smallest normal number collapsed to its first corner
+  (:meth:`rayaccel.scene.mesh.TriangleMesh.hit_rows` says why). The area test is compiled
+  without fast-math contraction (``exact=True``), so its cross product rounds as numpy's
+  and a float64 triangle is called degenerate exactly when the unfused products say so;
+- :func:`gather_rows`: rows put into a structure's reference order, so that a leaf or
+  cell streams contiguous memory (:mod:`rayaccel.trace.leaf`).
 """
 
 from __future__ import annotations
