@@ -5,10 +5,11 @@ peer once, in turn, and the report is the median over rounds (after one warm-up
 round that also compiles) with each build's ratio to Open3D's Embree build in the
 same run. Open3D builds lazily; its time covers ``add_triangles`` and the committing
 first cast (:mod:`rayaccel.bench.peers`). With ``--ready`` a rayaccel build's time also
-covers the layouts its default queries derive on first use (``Accel.query_traversal`` of the
-scene's standard primary, diffuse and shadow rays: the packet rows and the 8-wide BVH for a
-BVH), so both sides are timed until they can answer. One JSONL record per system, written
-atomically after the last round; a Markdown table is printed.
+covers the layouts its default queries derive on first use (``Accel.query_traversal`` of
+the scene's standard primary, diffuse and shadow rays: for a BVH the pairs rows of
+``bvh2.packet`` and the 8-wide rows of ``bvh2.wide``), so both sides are timed until they
+can answer. One JSONL record per system, written atomically after the last round; a
+Markdown table is printed.
 
     NUMBA_NUM_THREADS=2 RAYACCEL_SCENE_PATH=../shared/scenes python benchmarks/bench_build.py \
         kitchen --keys bvh2.lbvh bvh2.binned_sah bvh2.ploc bvh2.sbvh --rounds 7

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from rayaccel.config import parallel_section
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray, check_precision
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels import triangle_rows
@@ -186,7 +187,8 @@ class TriangleMesh:
 
     def triangles(self) -> FloatArray:
         """Return the ``(F, 3, 3)`` float32 corner positions of every triangle."""
-        corners: FloatArray = triangle_rows.triangle_corners(self.vertices, self.faces)
+        with parallel_section():
+            corners: FloatArray = triangle_rows.triangle_corners(self.vertices, self.faces)
         return corners
 
     def triangles64(self) -> npt.NDArray[np.float64]:
@@ -199,9 +201,10 @@ class TriangleMesh:
         """
         if self.vertices64 is None:
             raise InvalidInputError(f"{self.name}: not a float64 mesh")
-        corners: npt.NDArray[np.float64] = triangle_rows.triangle_corners(
-            self.vertices64, self.faces
-        )
+        with parallel_section():
+            corners: npt.NDArray[np.float64] = triangle_rows.triangle_corners(
+                self.vertices64, self.faces
+            )
         return corners
 
     def hit_rows(self) -> RealArray:
@@ -224,16 +227,18 @@ class TriangleMesh:
         definition instead (docs/reliability.md, "Numbers"); a float64 mesh hits it.
         """
         positions = self.vertices if self.vertices64 is None else self.vertices64
-        rows: RealArray = triangle_rows.hit_rows(
-            positions, self.faces, float(NORMAL_FLOOR[self.precision])
-        )
+        with parallel_section():
+            rows: RealArray = triangle_rows.hit_rows(
+                positions, self.faces, float(NORMAL_FLOOR[self.precision])
+            )
         return rows
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
         """Return ``(lo, hi)``, the float32 bounding box of the referenced vertices."""
         lo: FloatArray
         hi: FloatArray
-        lo, hi = triangle_rows.corner_bounds(self.vertices, self.faces)
+        with parallel_section():
+            lo, hi = triangle_rows.corner_bounds(self.vertices, self.faces)
         return lo, hi
 
     def areas(self) -> FloatArray:

@@ -30,6 +30,7 @@ import numpy as np
 from numba import prange
 
 from rayaccel._jit import cpu_kernel
+from rayaccel.config import parallel_section
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray, RealArray
 from rayaccel.errors import StructureInvariantError
 from rayaccel.kernels.structure_checks import check_prims_listed
@@ -363,7 +364,8 @@ class PackedBvh2:
             n_inner = self.source.n_nodes - self.source.n_leaves
             rows = aligned_zeros((max(n_inner, 1), 16), REAL, CACHE_LINE)
             tables = (self.ref_of_node, self.leaf_first, self.leaf_count)
-            child_rows(self.source.arrays(), *tables, rows, False)
+            with parallel_section():
+                child_rows(self.source.arrays(), *tables, rows, False)
             if not self._made:
                 self._made.append(rows)
         return self._made[0]
