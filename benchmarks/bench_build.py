@@ -43,10 +43,9 @@ def default_queries(mesh: rayaccel.TriangleMesh, scene: str, key: str) -> list[t
     """
     accel = rayaccel.build(mesh, key)
     pairs = set()
-    for kind, ray_set in standard_raysets(mesh, scene, width=128, height=128).items():
+    for ray_set in standard_raysets(mesh, scene, width=128, height=128).values():
         if ray_set.rays.n_rays:
-            query = "any" if kind == "shadow" else "closest"
-            pairs.add((accel.query_traversal(ray_set.rays), query))
+            pairs.add((accel.query_traversal(ray_set.rays), ray_set.query))
     return sorted(pairs)
 
 

@@ -1,12 +1,12 @@
 """Memory of a structure ready for queries: process RSS growth, rayaccel against Embree (Open3D).
 
 Each system runs in a fresh process, which first makes the scene's standard ray sets
-(256×256 primary rays, their diffuse and shadow rays) and loads its code (rayaccel: every
-kernel the queries use, compiled on the Cornell box; Open3D: a one-triangle scene), then
-reads its resident set size, builds the structure over the scene and answers every ray set
-(rayaccel: ``Accel.trace`` with no traversal named, i.e. the default queries and the layouts
-they derive, or the traversal given by ``--traversal``; Open3D: ``cast_rays`` and
-``test_occlusions``), drops garbage and returns freed heap pages to the system
+(256×256 primary rays, their diffuse and shadow rays) and loads its code by answering the
+Cornell box's ray sets (rayaccel: every kernel the queries use), then reads its resident
+set size, builds the structure over the scene and answers every ray set (rayaccel:
+``Accel.trace`` with no traversal named, i.e. the default queries and the layouts they
+derive, or the traversal given by ``--traversal``; Open3D: its peer in
+:mod:`rayaccel.bench.peers`), drops garbage and returns freed heap pages to the system
 (``malloc_trim``), and reads it again. The growth per triangle is issue 21's measure; for
 rayaccel, ``Accel.info()``'s bytes (the canonical structure and each derived layout) are
 listed beside it.
@@ -27,8 +27,6 @@ import subprocess
 import sys
 from typing import Any
 
-import numpy as np
-
 #: The ray-set size of every run.
 SIZE = 256
 
@@ -47,11 +45,8 @@ def _rss() -> int:
 
 
 def _queries(raysets: dict[str, Any]) -> list[tuple[str, Any]]:
-    return [
-        ("any" if kind == "shadow" else "closest", s.rays)
-        for kind, s in raysets.items()
-        if s.rays.n_rays
-    ]
+    """Return ``(query, rays)`` of every non-empty ray set."""
+    return [(s.query, s.rays) for s in raysets.values() if s.rays.n_rays]
 
 
 def measure(system: str, scene: str, key: str, traversal: str | None) -> dict[str, Any]:
@@ -62,33 +57,24 @@ def measure(system: str, scene: str, key: str, traversal: str | None) -> dict[st
     mesh = rayaccel.scenes.get(scene)
     queries = _queries(standard_raysets(mesh, scene, width=SIZE, height=SIZE))
     small = rayaccel.scenes.get("cornell-box")
+    small_queries = _queries(standard_raysets(small, "cornell-box", width=64, height=64))
     record: dict[str, Any] = {"system": system, "scene": scene, "n_tris": mesh.n_triangles}
     if system == "open3d":
-        import open3d
+        from rayaccel.bench.peers import get_peer
 
-        def scene_of(m: Any) -> Any:
-            built = open3d.t.geometry.RaycastingScene()
-            built.add_triangles(
-                open3d.core.Tensor(np.ascontiguousarray(m.vertices)),
-                open3d.core.Tensor(np.ascontiguousarray(m.faces, dtype=np.uint32)),
-            )
-            return built
+        peer = get_peer("open3d")
 
-        def answer(built: Any) -> None:
-            for query, rays in queries:
-                packed = open3d.core.Tensor(
-                    np.ascontiguousarray(np.hstack([rays.origin, rays.direction]), np.float32)
-                )
-                if query == "any":
-                    built.test_occlusions(packed, tfar=float(rays.tmax[0]))
-                else:
-                    built.cast_rays(packed)
+        def answer(sets: list[tuple[str, Any]]) -> None:
+            for query, rays in sets:
+                batch = peer.prepare(rays)
+                peer.occluded(batch) if query == "any" else peer.intersect(batch)
 
-        answer(scene_of(small))
+        peer.build(small)
+        answer(small_queries)
         _trim()
         before = _rss()
-        built = scene_of(mesh)
-        answer(built)
+        peer.build(mesh)
+        answer(queries)
     else:
         from rayaccel.registry import query_traversal
 
@@ -97,7 +83,7 @@ def measure(system: str, scene: str, key: str, traversal: str | None) -> dict[st
         picks = {traversal} if traversal else {
             query_traversal(warm.structure_name, share) for share in (0.0, 1.0)
         }  # fmt: skip
-        for query, rays in _queries(standard_raysets(small, "cornell-box", width=64, height=64)):
+        for query, rays in small_queries:
             for pick in picks:
                 warm.trace(rays, query=query, traversal=pick)
         del warm
