@@ -313,11 +313,15 @@ def test_packed_layout_matches_canonical(builder):
 
 
 def test_default_queries_do_not_make_the_packed_rows():
-    """The pairs and wide rows come from the canonical tree: the packed rows stay unmade."""
+    """The wide (and pairs) rows come from the canonical tree: the packed rows stay unmade."""
     mesh = MESHES["icosphere2"]()
     accel = rayaccel.build(mesh, "bvh2.binned_sah")
     rays = RayBatch(np.zeros((64, 3)), np.random.default_rng(0).normal(size=(64, 3)))
-    hits = {t: accel.trace(rays, traversal=t) for t in ("bvh2.packet", "bvh2.wide", "bvh2.stack")}
+    hits = {t: accel.trace(rays, traversal=t) for t in ("bvh2.packet", "bvh2.wide")}
+    # Packets and single rays share the 8-wide rows: no pairs rows either.
+    assert "bvh2.pairs" not in accel.info()["layouts"]
+    hits["bvh2.stack"] = accel.trace(rays, traversal="bvh2.stack")
+    assert "bvh2.pairs" in accel.info()["layouts"]
     packed = accel.derived("bvh2.packed")
     assert not packed.has_rows
     before = packed.nbytes()

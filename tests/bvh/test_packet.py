@@ -111,6 +111,11 @@ def test_lane_row_compare_and_copy():
     mask = _row_ops(lanes, 0, 1, 0, 2)
     assert mask == 0b11110111
     assert np.array_equal(lanes[2], lanes[0])
+    # A missed box (inf) is not "at most" a ray with no hit yet (inf bound).
+    lanes[0, 1] = np.inf
+    lanes[1, 1] = np.inf
+    lanes[1, 9] = np.inf
+    assert _row_ops(lanes, 0, 1, 0, 2) == 0b1000000000 | 0b11110101
 
 
 def _mixed_packets(mesh: rayaccel.TriangleMesh, n: int, seed: int) -> RayBatch:
@@ -124,18 +129,39 @@ def _mixed_packets(mesh: rayaccel.TriangleMesh, n: int, seed: int) -> RayBatch:
     return RayBatch(origin, direction, 0.0, tmax)
 
 
+@pytest.mark.parametrize("width", [8, 2])
 @pytest.mark.parametrize("scene", ["cornell-box", "teapot"])
-def test_mixed_octant_packets_match_the_oracle(scene):
+def test_mixed_octant_packets_match_the_oracle(scene, width):
     """Packets whose rays go every way traverse octant by octant and lose nothing."""
     mesh = rayaccel.scenes.get(scene)
     accel = rayaccel.build(mesh)
     rays = _mixed_packets(mesh, 50 * PACKET + 5, seed=3)  # a partial last packet
     oracle = reference.oracle(mesh, rays)
     tri = reference.tri9(mesh)
-    closest = accel.trace(rays, traversal="bvh2.packet")
+    closest = accel.trace(rays, traversal="bvh2.packet", width=width)
     reference.assert_closest_matches(tri, rays, closest, oracle, "bvh2.packet")
-    occluded = accel.trace(rays, traversal="bvh2.packet", query="any")
+    occluded = accel.trace(rays, traversal="bvh2.packet", query="any", width=width)
     reference.assert_any_matches(tri, rays, occluded, oracle, "bvh2.packet")
+
+
+def test_packet_rows_of_either_width_give_the_same_closest_hits():
+    """Camera rays through the 8-wide and the binary rows: the same ``t`` as ``bvh2.stack``."""
+    mesh = rayaccel.scenes.get("teapot")
+    accel = rayaccel.build(mesh)
+    primary = standard_raysets(mesh, "teapot", kinds=["primary"], width=64, height=64)
+    rays = primary["primary"].rays
+    stack = accel.trace(rays, traversal="bvh2.stack")
+    for width in (8, 2):
+        packet = accel.trace(rays, traversal="bvh2.packet", width=width, stats=True)
+        assert np.array_equal(packet.t, stack.t)
+        assert packet.hit.sum() > rays.n_rays // 8
+        assert packet.stats["box_tests"].sum() > 0
+    # The 8-wide rows take a third of the binary rows' steps.
+    steps = {w: accel.trace(rays, traversal="bvh2.packet", width=w, stats=True).stats["steps"]
+             for w in (8, 2)}  # fmt: skip
+    assert steps[8].mean() < 0.6 * steps[2].mean()
+    with pytest.raises(rayaccel.InvalidInputError, match="width"):
+        accel.trace(rays, traversal="bvh2.packet", width=4)
 
 
 def test_default_query_takes_packets_for_coherent_batches_only():

@@ -114,10 +114,11 @@ def _check_lanes(lanes: Any) -> None:
 
 @intrinsic
 def lanes_at_most(typingctx: Any, lanes: Any, row: Any, bound_row: Any) -> Any:
-    """Return the mask of the lanes where ``lanes[row] <= lanes[bound_row]`` (one compare).
+    """Return the mask of the lanes where ``lanes[row] <= lanes[bound_row]`` and is finite.
 
     A packet's stack entry holds each ray's entry distance (``inf`` for a ray that missed
-    the box); compared with the rays' ``hi`` it gives the rays that still go on there.
+    the box); compared with the rays' ``hi`` it gives the rays that still go on there. A
+    ray that missed the box stays out even while its ``hi`` is still ``inf`` (no hit yet).
     """
     _check_lanes(lanes)
 
@@ -125,7 +126,12 @@ def lanes_at_most(typingctx: Any, lanes: Any, row: Any, bound_row: Any) -> Any:
         pointer = lane_row_pointer(context, builder, signature.args[0], args[0])
         rows = [context.cast(builder, args[i], signature.args[i], types.intp) for i in (1, 2)]
         value, bound = (builder.load(pointer(r), align=4) for r in rows)
-        at_most = builder.fcmp_ordered("<=", value, bound)
+        vec_type = ir.VectorType(context.get_value_type(signature.args[0].dtype), PACKET)
+        inf = splat(builder, vec_type, ir.Constant(vec_type.element, float("inf")))
+        # A missed box's inf is never "at most" a ray's bound, not even an inf bound.
+        at_most = builder.and_(
+            builder.fcmp_ordered("<=", value, bound), builder.fcmp_ordered("<", value, inf)
+        )
         return builder.zext(builder.bitcast(at_most, ir.IntType(PACKET)), ir.IntType(32))
 
     return types.int32(lanes, row, bound_row), codegen

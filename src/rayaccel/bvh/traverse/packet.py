@@ -1,25 +1,29 @@
-"""Packets of sixteen rays through a binary BVH (``bvh2.packet``).
+"""Packets of sixteen rays through the 8-wide (or the binary) rows of a BVH (``bvh2.packet``).
 
 Wald, Slusallek, Benthin, Wagner 2001, "Interactive Rendering with Coherent Ray
 Tracing"; the masked descent of Wald, Boulos, Shirley 2007 ("Ray Tracing Deformable
 Scenes using Dynamic Bounding Volume Hierarchies", §4). Sixteen consecutive rays of a
 batch form a packet; rays whose directions have the same signs (an octant) traverse
-together: each inner row of the pairs layout (:mod:`rayaccel.bvh.layouts.pairs`, both
-children's boxes in 64 bytes) is fetched once for the packet and each child box is
-tested against the sixteen rays in one ``<16 x float>`` slab test
-(:data:`rayaccel.kernels.aabb_packet.packet_slab_test`). The packet descends into a
-child if any of its rays hits it, nearer child first by the entry distance of the
-lowest ray that hits both; the farther one is pushed with every ray's entry
-distance, and a popped entry goes on with the rays whose closest hit is still beyond
-their entry (none: it is dropped unfetched). A leaf tests its triangles for the rays
-that hit its box: with one vector form of the watertight test per triangle when those
-rays share their shear axes (:mod:`rayaccel.kernels.triangle_packet`, bit-identical to
-the scalar test), else one ray at a time with the single-ray traversals' test
-(:mod:`rayaccel.kernels.triangle`). Rays of another octant in the same packet traverse
-as a packet of their own, so incoherent rays (diffuse bounces) pay up to eight descents
-(one per octant) of a few rays each: this traversal is for coherent batches (camera rays
-in image order, shadow rays towards one light from neighbouring hits); queries that name
-no traversal take it only for those (:mod:`rayaccel.rays.coherence`).
+together: each row is fetched once for the packet and each child box is tested
+against the sixteen rays in one ``<16 x float>`` slab test
+(:data:`rayaccel.kernels.aabb_packet.packet_slab_test`). By default the rows are the
+8-wide rows of ``bvh2.wide`` (:mod:`rayaccel.bvh.layouts.wide`; eight child boxes per
+256-byte row, as Embree's BVH8 packets), so the default queries, single rays and
+packets, need one layout; ``width=2`` descends the pairs rows of ``bvh2.stack``
+(:mod:`rayaccel.bvh.layouts.pairs`, both children's boxes in 64 bytes). The packet
+descends into a child if any of its rays hits it, nearest child first by the entry
+distance of the lowest ray that reached the row (binary rows: the lowest ray that hits
+both children); the others are pushed with every ray's entry distance, and a popped
+entry goes on with the rays whose closest hit is still beyond their entry (none: it is
+dropped unfetched). A leaf tests its triangles for the rays that hit its box: with one
+vector form of the watertight test per triangle when those rays share their shear axes
+(:mod:`rayaccel.kernels.triangle_packet`, bit-identical to the scalar test), else one
+ray at a time with the single-ray traversals' test (:mod:`rayaccel.kernels.triangle`).
+Rays of another octant in the same packet traverse as a packet of their own, so
+incoherent rays (diffuse bounces) pay up to eight descents (one per octant) of a few
+rays each: this traversal is for coherent batches (camera rays in image order, shadow
+rays towards one light from neighbouring hits); queries that name no traversal take it
+only for those (:mod:`rayaccel.rays.coherence`).
 
 Results: every ray visits each leaf whose box it hits before its closest hit, with
 the single-ray box test lane by lane, so the closest ``t`` is ``bvh2.stack``'s; the
@@ -29,23 +33,35 @@ every ray is retired.
 
 Counters (per ray, as its share of the packet's work): ``steps`` and ``nodes`` the
 packet's rows and leaves the ray took part in (a leaf only if its box was hit),
-``box_tests`` two per row, ``prim_tests`` its own triangle tests, ``stack_peak`` the
+``box_tests`` the row's children, ``prim_tests`` its own triangle tests, ``stack_peak`` the
 deepest stack of its descent, ``bytes`` the rows, stack entries and triangles fetched,
 divided among the rays that shared them.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from numba.cpython.unsafe.numbers import trailing_zeros
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from rayaccel._jit import cpu_inline, prefetch_row
-from rayaccel.bvh.layouts.bvh2 import PACKED_ROW_BYTES, REF_BYTES, STACK_SIZE, TRIANGLE_BYTES, Bvh2
+from rayaccel.bvh.layouts.bvh2 import (
+    MAX_DEPTH,
+    PACKED_ROW_BYTES,
+    REF_BYTES,
+    STACK_SIZE,
+    TRIANGLE_BYTES,
+    Bvh2,
+)
 from rayaccel.bvh.layouts.pairs import COUNT_COLUMN, REF_COLUMN
+from rayaccel.bvh.layouts.wide import count_column, ref_column, row_floats
 from rayaccel.bvh.traverse.building_blocks import lane_planes
 from rayaccel.bvh.traverse.stack import pairs_plan
+from rayaccel.bvh.traverse.wide import wide_bvh
+from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb_packet import (
     HI_ROW,
     LO_ROW,
@@ -101,7 +117,25 @@ _OCTANT = OCTANT
 
 @dataclass(frozen=True, slots=True)
 class PacketOptions:
-    """Options of the ``bvh2.packet`` traversal (none yet; packets are sixteen rays)."""
+    """Options of the ``bvh2.packet`` traversal (packets are sixteen rays).
+
+    Attributes
+    ----------
+    width : {8, 2}
+        Children per row the packet descends through: 8, the wide rows of ``bvh2.wide``
+        (the default queries then need no other layout), or 2, the pairs rows of
+        ``bvh2.stack`` (Wald et al. 2001's binary descent).
+    """
+
+    width: int = 8
+
+    def __post_init__(self) -> None:
+        if self.width not in PACKET_WIDTHS:
+            raise InvalidInputError(f"width: expected one of {PACKET_WIDTHS}, got {self.width}")
+
+
+#: The row widths ``bvh2.packet`` descends through.
+PACKET_WIDTHS = (2, 8)
 
 
 def make_scratch_py(bvh):
@@ -420,6 +454,200 @@ def trace_rays_py(
     return n_overflowed
 
 
+@functools.cache
+def wide_packet_body(width: int) -> tuple[Any, Any]:
+    """Return the ``(make_scratch, trace_rays)`` inline pair of packets over ``width``-wide rows.
+
+    The descent of :func:`trace_rays_py` over the wide rows of ``bvh2.wide``
+    (:mod:`rayaccel.bvh.layouts.wide`): a row's children are each tested against the
+    packet's rays, the hit ones visited nearest first for the lowest ray of the packet
+    that reached the row (children it misses last, in lane order), the others pushed
+    with every ray's entry distance. ``width`` and the sizes it fixes are compile-time
+    constants of the body.
+    """
+    ref_col = ref_column(width)
+    count_col = count_column(width)
+    row_bytes = 4 * row_floats(width)
+    # A row pushes at most width - 1 entries, a path crosses at most MAX_DEPTH rows.
+    stack_size = (width - 1) * MAX_DEPTH + 1
+    child_row = _CHILD
+    stack_row = _CHILD + width
+    n_rows = stack_row + stack_size
+
+    def make_scratch_py(bvh):
+        """Return one worker's stack references and integer lane state."""
+        stack_ref = np.empty(stack_size, dtype=np.int32)
+        lane_int = np.zeros((_INT_ROWS, PACKET), dtype=np.int64)
+        return stack_ref, lane_int
+
+    def trace_rays_py(
+        bvh, scratch, origin, direction, tmin, tmax, begin, end,
+        hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+    ):  # fmt: skip
+        """Trace rays ``begin:end`` through ``bvh`` (WideArrays) in packets; return overflows."""
+        stack_ref, lane_int = scratch
+        box = bvh.box
+        refs = bvh.ref
+        lanes = np.empty((n_rows, PACKET), dtype=origin.dtype)
+        n_overflowed = 0
+        for p0 in range(begin, end, PACKET):
+            n_lanes = min(PACKET, end - p0)
+            pending = setup_packet(
+                bvh, origin, direction, tmin, tmax, p0, end, lanes, lane_int, with_stats
+            )
+            while pending != 0:
+                lead = trailing_zeros(pending)
+                octant = lane_int[_OCTANT, lead]
+                group = 0
+                for lane in range(PACKET):
+                    if (pending >> lane) & 1 and lane_int[_OCTANT, lane] == octant:
+                        group |= 1 << lane
+                        lanes[LO_ROW, lane] = lanes[_T_LO, lane] - lanes[_PAD, lane]
+                        lanes[HI_ROW, lane] = lanes[_T_HIT, lane] + lanes[_PAD, lane]
+                    else:
+                        lanes[HI_ROW, lane] = -np.inf
+                pending &= ~group
+                axes = (
+                    lane_int[_AXES, lead], lane_int[_AXES + 1, lead], lane_int[_AXES + 2, lead]
+                )  # fmt: skip
+                shared_axes = True
+                for lane in range(PACKET):
+                    if (group >> lane) & 1 and (
+                        lane_int[_AXES, lane] != axes[0] or lane_int[_AXES + 1, lane] != axes[1]
+                    ):
+                        shared_axes = False
+                nx = octant & 1
+                ny = 2 + ((octant >> 1) & 1)
+                nz = 4 + ((octant >> 2) & 1)
+                near_x, far_x, near_y, far_y, near_z, far_z = lane_planes(
+                    width, nx, ny, nz, 1 - nx, 5 - ny, 9 - nz
+                )
+                alive = group
+                node = bvh.root_ref[0]
+                mask = group
+                sp = 0
+                peak = 0
+                done = False
+                while not done:
+                    if node >= 0:
+                        # Every child box against the packet; hit ones sorted by the
+                        # entry distance of the lowest ray that reached this row.
+                        n_children = refs[node, count_col]
+                        hits = 0
+                        for c in range(n_children):
+                            m = packet_slab_test(
+                                box, node, near_x + c, far_x + c, near_y + c, far_y + c,
+                                near_z + c, far_z + c, lanes, child_row + c,
+                            )  # fmt: skip
+                            if m != 0:
+                                hits |= 1 << c
+                        if with_stats:
+                            for lane in range(PACKET):
+                                if (alive >> lane) & 1:
+                                    lane_int[_STEPS, lane] += 1
+                                    lane_int[_NODES, lane] += 1
+                                    lane_int[_BOX, lane] += n_children
+                            share(lane_int, alive, _BYTES, row_bytes)
+                        if hits != 0:
+                            # The farther children go on the stack, farthest first, by the
+                            # entry distance of the lowest ray that reached this row (lane
+                            # order among equals); the nearest is visited next.
+                            first_ray = trailing_zeros(mask)
+                            n_pushed = 0
+                            while hits & (hits - 1) != 0:
+                                if sp == stack_size:
+                                    break
+                                if query == QUERY_ANY:
+                                    # Any hit ends a ray: lane order, no sort.
+                                    far = 31 - leading_zeros(np.uint32(hits))
+                                else:
+                                    far = -1
+                                    far_key = -np.inf
+                                    rest = hits
+                                    while rest != 0:
+                                        c = trailing_zeros(rest)
+                                        rest &= rest - 1
+                                        key = lanes[child_row + c, first_ray]
+                                        if key >= far_key:
+                                            far_key = key
+                                            far = c
+                                stack_ref[sp] = refs[node, ref_col + far]
+                                copy_lane_row(lanes, child_row + far, stack_row + sp)
+                                sp += 1
+                                n_pushed += 1
+                                hits &= ~(1 << far)
+                            if hits & (hits - 1) != 0:
+                                n_overflowed += popcount(group)
+                                break
+                            if with_stats and n_pushed > 0:
+                                peak = max(peak, sp)
+                                share(lane_int, alive, _BYTES, _STACK_ENTRY_BYTES * n_pushed)
+                            near = trailing_zeros(hits)
+                            mask = lanes_at_most(lanes, child_row + near, HI_ROW)
+                            node = refs[node, ref_col + near]
+                            if node >= 0:
+                                prefetch_row(box, node)
+                            continue
+                    else:
+                        leaf = ~node
+                        first = bvh.leaf_first[leaf]
+                        count = bvh.leaf_count[leaf]
+                        if with_stats:
+                            for lane in range(PACKET):
+                                if (mask >> lane) & 1:
+                                    lane_int[_STEPS, lane] += 1
+                        if shared_axes:
+                            retired = leaf_packet(
+                                bvh, first, count, mask, axes, lanes, lane_int,
+                                query == QUERY_ANY, with_stats,
+                            )  # fmt: skip
+                        else:
+                            retired = leaf_lanes(
+                                bvh, first, count, mask, lanes, lane_int, query == QUERY_ANY,
+                                with_stats,
+                            )  # fmt: skip
+                        if query == QUERY_ANY:
+                            alive &= ~retired
+                            if alive == 0:
+                                break
+                    # Pop the next entry still in front of some ray's closest hit.
+                    done = True
+                    while sp > 0:
+                        sp -= 1
+                        if with_stats:
+                            share(lane_int, alive, _BYTES, _STACK_ENTRY_BYTES)
+                        mask = lanes_at_most(lanes, stack_row + sp, HI_ROW)
+                        if mask != 0:
+                            node = stack_ref[sp]
+                            done = False
+                            break
+                if with_stats:
+                    for lane in range(PACKET):
+                        if (group >> lane) & 1:
+                            lane_int[_PEAK, lane] = peak
+            for lane in range(n_lanes):
+                r = p0 + lane
+                if with_stats:
+                    store_counts(
+                        counters, r, lane_int[_STEPS, lane], lane_int[_NODES, lane],
+                        lane_int[_BOX, lane], lane_int[_PRIMS, lane], lane_int[_PEAK, lane],
+                        lane_int[_BYTES, lane],
+                    )  # fmt: skip
+                store_hit(
+                    hit_t, hit_prim, hit_u, hit_v, r, lanes[_T_HIT, lane], lane_int[_PRIM, lane],
+                    lanes[_U, lane], lanes[_V, lane],
+                )  # fmt: skip
+        return n_overflowed
+
+    return cpu_inline(make_scratch_py), cpu_inline(trace_rays_py)
+
+
+@functools.cache
+def wide_packet_kernels(width: int) -> Any:
+    """Return ``kernel_for(query, with_stats, parallel)``: the compiled ``width``-wide variants."""
+    return body_kernels(*wide_packet_body(width))
+
+
 make_scratch = cpu_inline(make_scratch_py)
 #: ``kernel_for(query, with_stats, parallel)``: the compiled variants of this traversal.
 trace_kernel = body_kernels(make_scratch, cpu_inline(trace_rays_py))
@@ -433,8 +661,9 @@ def trace_bvh2_packet(
 
     Trace rays through a binary BVH in packets of sixteen consecutive rays.
 
-    The pairs layout of ``bvh2.stack`` is derived from the canonical tree on first use
-    and shared with it.
+    The rows it reads (the 8-wide rows of ``bvh2.wide``, or with ``width=2`` the pairs
+    rows of ``bvh2.stack``) are derived from the canonical tree on first use and shared
+    with that traversal.
 
     Raises
     ------
@@ -443,6 +672,11 @@ def trace_bvh2_packet(
 
     References
     ----------
-    Wald, Slusallek, Benthin, Wagner 2001, Interactive Rendering with Coherent Ray Tracing.
+    Wald, Slusallek, Benthin, Wagner 2001, Interactive Rendering with Coherent Ray Tracing;
+    Wald, Benthin, Boulos 2008, Getting Rid of Packets (the wide rows).
     """
-    return pairs_plan(trace_kernel, bvh, mesh, cache)
+    if options.width == 2:
+        return pairs_plan(trace_kernel, bvh, mesh, cache)
+    wide = wide_bvh(bvh, mesh, cache, options.width)
+    hint = f"the tree is deeper than its stack allows ({MAX_DEPTH} rows, MAX_DEPTH)"
+    return TracePlan(wide_packet_kernels(options.width), wide.arrays(), hint)
