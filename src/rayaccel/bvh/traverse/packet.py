@@ -168,6 +168,30 @@ def share_py(lane_int, mask, column, amount):
 share = cpu_inline(share_py)
 
 
+def octant_planes_py(octant):
+    """Return the interleaved near and far plane indices ``(nx, ny, nz, fx, fy, fz)`` of an octant.
+
+    As :func:`rayaccel.trace.ray_setup.ray_prologue_py` picks them from the direction's
+    signs (bit ``a`` of the octant set: negative along axis ``a``).
+    """
+    nx = octant & 1
+    ny = 2 + ((octant >> 1) & 1)
+    nz = 4 + ((octant >> 2) & 1)
+    return nx, ny, nz, 1 - nx, 5 - ny, 9 - nz
+
+
+octant_planes = cpu_inline(octant_planes_py)
+
+
+def octant_columns_py(width, octant):
+    """Return the near and far plane columns of a ``width``-lane row for an octant's rays."""
+    nx, ny, nz, fx, fy, fz = octant_planes(octant)
+    return lane_planes(width, nx, ny, nz, fx, fy, fz)
+
+
+octant_columns = cpu_inline(octant_columns_py)
+
+
 def setup_packet_py(bvh, origin, direction, tmin, tmax, p0, end, lanes, lane_int, with_stats):
     """Compute the constants of rays ``p0:min(p0 + PACKET, end)``; return the lanes to trace.
 
@@ -189,14 +213,11 @@ def setup_packet_py(bvh, origin, direction, tmin, tmax, p0, end, lanes, lane_int
         for lane in range(PACKET):
             if not (pending >> lane) & 1:
                 continue
-            octant = lane_int[_OCTANT, lane]
-            nx = octant & 1
-            ny = 2 + ((octant >> 1) & 1)
-            nz = 4 + ((octant >> 2) & 1)
+            nx, ny, nz, fx, fy, fz = octant_planes(lane_int[_OCTANT, lane])
             pad = lanes[_PAD, lane]
             entry = root_entry(
                 bvh.root_box, lanes[0, lane], lanes[1, lane], lanes[2, lane], lanes[3, lane],
-                lanes[4, lane], lanes[5, lane], nx, ny, nz, 1 - nx, 5 - ny, 9 - nz,
+                lanes[4, lane], lanes[5, lane], nx, ny, nz, fx, fy, fz,
                 lanes[_T_LO, lane] - pad, lanes[_T_HIT, lane] + pad,
             )  # fmt: skip
             if with_stats:
@@ -302,6 +323,104 @@ def leaf_lanes_py(bvh, first, count, mask, lanes, lane_int, stop_at_first, with_
 leaf_lanes = cpu_inline(leaf_lanes_py)
 
 
+def start_group_py(pending, lanes, lane_int):
+    """Start the descent of the lowest pending ray's octant.
+
+    Opens the culling interval of the group's rays and closes every other lane's (no
+    box test passes for ``hi = -inf``). Returns ``(group, octant, axes, shared_axes)``:
+    the group's lanes, its octant, the lowest ray's shear axes and whether every ray of
+    the group shares them (then a leaf's triangles are tested as one packet).
+    """
+    lead = trailing_zeros(pending)
+    octant = lane_int[_OCTANT, lead]
+    group = 0
+    for lane in range(PACKET):
+        if (pending >> lane) & 1 and lane_int[_OCTANT, lane] == octant:
+            group |= 1 << lane
+            lanes[LO_ROW, lane] = lanes[_T_LO, lane] - lanes[_PAD, lane]
+            lanes[HI_ROW, lane] = lanes[_T_HIT, lane] + lanes[_PAD, lane]
+        else:
+            lanes[HI_ROW, lane] = -np.inf
+    axes = (lane_int[_AXES, lead], lane_int[_AXES + 1, lead], lane_int[_AXES + 2, lead])
+    shared_axes = True
+    for lane in range(PACKET):
+        if (group >> lane) & 1 and (
+            lane_int[_AXES, lane] != axes[0] or lane_int[_AXES + 1, lane] != axes[1]
+        ):
+            shared_axes = False
+    return group, octant, axes, shared_axes
+
+
+start_group = cpu_inline(start_group_py)
+
+
+def visit_leaf_py(bvh, first, count, mask, axes, shared_axes, lanes, lane_int, stop_at_first,
+                  with_stats):  # fmt: skip
+    """Test triangles ``first:first + count`` for the rays of ``mask``; return the retired ones."""
+    if with_stats:
+        for lane in range(PACKET):
+            if (mask >> lane) & 1:
+                lane_int[_STEPS, lane] += 1
+    if shared_axes:
+        return leaf_packet(
+            bvh, first, count, mask, axes, lanes, lane_int, stop_at_first, with_stats
+        )
+    return leaf_lanes(bvh, first, count, mask, lanes, lane_int, stop_at_first, with_stats)
+
+
+visit_leaf = cpu_inline(visit_leaf_py)
+
+
+def pop_entry_py(lanes, lane_int, sp, stack_row, alive, with_stats):
+    """Pop entries until one is still in front of some ray's closest hit.
+
+    Returns ``(sp, mask)``: the entry's index and the rays that go on there, or a zero
+    mask when the stack is empty.
+    """
+    while sp > 0:
+        sp -= 1
+        if with_stats:
+            share(lane_int, alive, _BYTES, _STACK_ENTRY_BYTES)
+        mask = lanes_at_most(lanes, stack_row + sp, HI_ROW)
+        if mask != 0:
+            return sp, mask
+    return 0, 0
+
+
+pop_entry = cpu_inline(pop_entry_py)
+
+
+def finish_group_py(lane_int, group, peak, with_stats):
+    """Record the deepest stack of the group's descent for its rays."""
+    if with_stats:
+        for lane in range(PACKET):
+            if (group >> lane) & 1:
+                lane_int[_PEAK, lane] = peak
+
+
+finish_group = cpu_inline(finish_group_py)
+
+
+def store_packet_py(p0, n_lanes, lanes, lane_int, hit_t, hit_prim, hit_u, hit_v, counters,
+                    with_stats):  # fmt: skip
+    """Store the hits (and counters) of rays ``p0:p0 + n_lanes`` from the packet's lanes."""
+    for lane in range(n_lanes):
+        r = p0 + lane
+        if with_stats:
+            store_counts(
+                counters, r, lane_int[_STEPS, lane], lane_int[_NODES, lane],
+                lane_int[_BOX, lane], lane_int[_PRIMS, lane], lane_int[_PEAK, lane],
+                lane_int[_BYTES, lane],
+            )  # fmt: skip
+        store_hit(
+            hit_t, hit_prim, hit_u, hit_v, r, lanes[_T_HIT, lane], lane_int[_PRIM, lane],
+            lanes[_U, lane], lanes[_V, lane],
+        )  # fmt: skip
+
+
+store_packet = cpu_inline(store_packet_py)
+
+
 def trace_rays_py(
     bvh, scratch, origin, direction, tmin, tmax, begin, end,
     hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
@@ -320,32 +439,9 @@ def trace_rays_py(
         )
         while pending != 0:
             # The rays of the lowest pending ray's octant traverse together.
-            lead = trailing_zeros(pending)
-            octant = lane_int[_OCTANT, lead]
-            group = 0
-            for lane in range(PACKET):
-                if (pending >> lane) & 1 and lane_int[_OCTANT, lane] == octant:
-                    group |= 1 << lane
-                    lanes[LO_ROW, lane] = lanes[_T_LO, lane] - lanes[_PAD, lane]
-                    lanes[HI_ROW, lane] = lanes[_T_HIT, lane] + lanes[_PAD, lane]
-                else:
-                    # Out of this descent: no box test passes for ``hi = -inf``.
-                    lanes[HI_ROW, lane] = -np.inf
+            group, octant, axes, shared_axes = start_group(pending, lanes, lane_int)
             pending &= ~group
-            # Rays sharing the lead's shear axes test a leaf's triangles as one packet.
-            axes = (lane_int[_AXES, lead], lane_int[_AXES + 1, lead], lane_int[_AXES + 2, lead])
-            shared_axes = True
-            for lane in range(PACKET):
-                if (group >> lane) & 1 and (
-                    lane_int[_AXES, lane] != axes[0] or lane_int[_AXES + 1, lane] != axes[1]
-                ):
-                    shared_axes = False
-            nx = octant & 1
-            ny = 2 + ((octant >> 1) & 1)
-            nz = 4 + ((octant >> 2) & 1)
-            near_x, far_x, near_y, far_y, near_z, far_z = lane_planes(
-                2, nx, ny, nz, 1 - nx, 5 - ny, 9 - nz
-            )
+            near_x, far_x, near_y, far_y, near_z, far_z = octant_columns(2, octant)
             alive = group
             node = bvh.root_ref[0]
             count = bvh.root_ref[1]
@@ -405,52 +501,23 @@ def trace_rays_py(
                         continue
                 else:
                     # Leaf: its triangles for the rays that hit its box.
-                    if with_stats:
-                        for lane in range(PACKET):
-                            if (mask >> lane) & 1:
-                                lane_int[_STEPS, lane] += 1
-                    if shared_axes:
-                        retired = leaf_packet(
-                            bvh, ~node, count, mask, axes, lanes, lane_int, query == QUERY_ANY,
-                            with_stats,
-                        )  # fmt: skip
-                    else:
-                        retired = leaf_lanes(
-                            bvh, ~node, count, mask, lanes, lane_int, query == QUERY_ANY,
-                            with_stats,
-                        )  # fmt: skip
+                    retired = visit_leaf(
+                        bvh, ~node, count, mask, axes, shared_axes, lanes, lane_int,
+                        query == QUERY_ANY, with_stats,
+                    )  # fmt: skip
                     if query == QUERY_ANY:
                         alive &= ~retired
                         if alive == 0:
                             break
                 # Pop the next entry still in front of some ray's closest hit.
-                done = True
-                while sp > 0:
-                    sp -= 1
-                    if with_stats:
-                        share(lane_int, alive, _BYTES, _STACK_ENTRY_BYTES)
-                    mask = lanes_at_most(lanes, _STACK + sp, HI_ROW)
-                    if mask != 0:
-                        node = stack_ref[sp]
-                        count = stack_count[sp]
-                        done = False
-                        break
-            if with_stats:
-                for lane in range(PACKET):
-                    if (group >> lane) & 1:
-                        lane_int[_PEAK, lane] = peak
-        for lane in range(n_lanes):
-            r = p0 + lane
-            if with_stats:
-                store_counts(
-                    counters, r, lane_int[_STEPS, lane], lane_int[_NODES, lane],
-                    lane_int[_BOX, lane], lane_int[_PRIMS, lane], lane_int[_PEAK, lane],
-                    lane_int[_BYTES, lane],
-                )  # fmt: skip
-            store_hit(
-                hit_t, hit_prim, hit_u, hit_v, r, lanes[_T_HIT, lane], lane_int[_PRIM, lane],
-                lanes[_U, lane], lanes[_V, lane],
-            )  # fmt: skip
+                sp, mask = pop_entry(lanes, lane_int, sp, _STACK, alive, with_stats)
+                done = mask == 0
+                if not done:
+                    node = stack_ref[sp]
+                    count = stack_count[sp]
+            finish_group(lane_int, group, peak, with_stats)
+        store_packet(p0, n_lanes, lanes, lane_int, hit_t, hit_prim, hit_u, hit_v, counters,
+                     with_stats)  # fmt: skip
     return n_overflowed
 
 
@@ -496,32 +563,9 @@ def wide_packet_body(width: int) -> tuple[Any, Any]:
                 bvh, origin, direction, tmin, tmax, p0, end, lanes, lane_int, with_stats
             )
             while pending != 0:
-                lead = trailing_zeros(pending)
-                octant = lane_int[_OCTANT, lead]
-                group = 0
-                for lane in range(PACKET):
-                    if (pending >> lane) & 1 and lane_int[_OCTANT, lane] == octant:
-                        group |= 1 << lane
-                        lanes[LO_ROW, lane] = lanes[_T_LO, lane] - lanes[_PAD, lane]
-                        lanes[HI_ROW, lane] = lanes[_T_HIT, lane] + lanes[_PAD, lane]
-                    else:
-                        lanes[HI_ROW, lane] = -np.inf
+                group, octant, axes, shared_axes = start_group(pending, lanes, lane_int)
                 pending &= ~group
-                axes = (
-                    lane_int[_AXES, lead], lane_int[_AXES + 1, lead], lane_int[_AXES + 2, lead]
-                )  # fmt: skip
-                shared_axes = True
-                for lane in range(PACKET):
-                    if (group >> lane) & 1 and (
-                        lane_int[_AXES, lane] != axes[0] or lane_int[_AXES + 1, lane] != axes[1]
-                    ):
-                        shared_axes = False
-                nx = octant & 1
-                ny = 2 + ((octant >> 1) & 1)
-                nz = 4 + ((octant >> 2) & 1)
-                near_x, far_x, near_y, far_y, near_z, far_z = lane_planes(
-                    width, nx, ny, nz, 1 - nx, 5 - ny, 9 - nz
-                )
+                near_x, far_x, near_y, far_y, near_z, far_z = octant_columns(width, octant)
                 alive = group
                 node = bvh.root_ref[0]
                 mask = group
@@ -590,53 +634,22 @@ def wide_packet_body(width: int) -> tuple[Any, Any]:
                             continue
                     else:
                         leaf = ~node
-                        first = bvh.leaf_first[leaf]
-                        count = bvh.leaf_count[leaf]
-                        if with_stats:
-                            for lane in range(PACKET):
-                                if (mask >> lane) & 1:
-                                    lane_int[_STEPS, lane] += 1
-                        if shared_axes:
-                            retired = leaf_packet(
-                                bvh, first, count, mask, axes, lanes, lane_int,
-                                query == QUERY_ANY, with_stats,
-                            )  # fmt: skip
-                        else:
-                            retired = leaf_lanes(
-                                bvh, first, count, mask, lanes, lane_int, query == QUERY_ANY,
-                                with_stats,
-                            )  # fmt: skip
+                        retired = visit_leaf(
+                            bvh, bvh.leaf_first[leaf], bvh.leaf_count[leaf], mask, axes,
+                            shared_axes, lanes, lane_int, query == QUERY_ANY, with_stats,
+                        )  # fmt: skip
                         if query == QUERY_ANY:
                             alive &= ~retired
                             if alive == 0:
                                 break
                     # Pop the next entry still in front of some ray's closest hit.
-                    done = True
-                    while sp > 0:
-                        sp -= 1
-                        if with_stats:
-                            share(lane_int, alive, _BYTES, _STACK_ENTRY_BYTES)
-                        mask = lanes_at_most(lanes, stack_row + sp, HI_ROW)
-                        if mask != 0:
-                            node = stack_ref[sp]
-                            done = False
-                            break
-                if with_stats:
-                    for lane in range(PACKET):
-                        if (group >> lane) & 1:
-                            lane_int[_PEAK, lane] = peak
-            for lane in range(n_lanes):
-                r = p0 + lane
-                if with_stats:
-                    store_counts(
-                        counters, r, lane_int[_STEPS, lane], lane_int[_NODES, lane],
-                        lane_int[_BOX, lane], lane_int[_PRIMS, lane], lane_int[_PEAK, lane],
-                        lane_int[_BYTES, lane],
-                    )  # fmt: skip
-                store_hit(
-                    hit_t, hit_prim, hit_u, hit_v, r, lanes[_T_HIT, lane], lane_int[_PRIM, lane],
-                    lanes[_U, lane], lanes[_V, lane],
-                )  # fmt: skip
+                    sp, mask = pop_entry(lanes, lane_int, sp, stack_row, alive, with_stats)
+                    done = mask == 0
+                    if not done:
+                        node = stack_ref[sp]
+                finish_group(lane_int, group, peak, with_stats)
+            store_packet(p0, n_lanes, lanes, lane_int, hit_t, hit_prim, hit_u, hit_v, counters,
+                         with_stats)  # fmt: skip
         return n_overflowed
 
     return cpu_inline(make_scratch_py), cpu_inline(trace_rays_py)
