@@ -106,14 +106,13 @@ def test_collapsed_rows_reproduce_the_binary_tree(scene, width):
     rows, refs = wide.rows, wide.rows.view(np.int32)
     count = refs[:, count_column(width)]
     assert ((count >= 2) & (count <= width)).all()
-    assert wide.n_rows <= packed.rows.shape[0]
-    # Every binary leaf hangs under exactly one wide lane, with its own box.
-    binary_box = {}
-    for row in range(packed.rows.shape[0]):
-        for c in range(2):
-            binary_box[int(packed.rows.view(np.int32)[row, 12 + c])] = packed.rows[
-                row, 6 * c : 6 * c + 6
-            ]
+    tree = accel.structure
+    assert wide.n_rows <= tree.n_nodes - tree.n_leaves
+    # Every binary leaf hangs under exactly one wide lane (as ~node), with its own box.
+    binary_box = {
+        ~i: [b[i, a] for a in range(3) for b in (tree.node_lo, tree.node_hi)]
+        for i in np.flatnonzero(tree.node_count)
+    }
     leaves, inner = [], []
     for w in range(wide.n_rows):
         for j in range(count[w]):
@@ -125,7 +124,8 @@ def test_collapsed_rows_reproduce_the_binary_tree(scene, width):
         # A row with an inner child was filled to ``width`` children.
         if any(refs[w, ref_column(width) + j] >= 0 for j in range(count[w])):
             assert count[w] == width
-    assert sorted(leaves) == sorted(range(-packed.leaf_first.shape[0], 0))
+    assert sorted(leaves) == sorted(binary_box)
+    assert not packed.has_rows
     assert sorted(inner) == list(range(1, wide.n_rows))
 
 

@@ -342,20 +342,46 @@ def aligned_zeros(shape: tuple[int, ...], dtype: type, alignment: int) -> np.nda
 class PackedBvh2:
     """Aila–Laine style packed BVH2 (see the module docstring).
 
-    The leaf tables and triangle rows are made at once; the inner rows only when a
-    traversal first reads :attr:`rows` (the default queries' pairs and wide rows are
-    derived from the canonical tree directly, so they never need them).
+    The triangle rows are made at once; the leaf tables and the node numbers when
+    first read, and the inner rows only when a traversal first reads :attr:`rows`
+    (the default queries' wide rows are derived from the canonical tree directly and
+    address its leaves, so they need neither).
     """
 
-    leaf_first: IntArray
-    leaf_count: IntArray
     tri: RealArray
     tri_prim: IntArray
     root_box: FloatArray
     root_ref: IntArray
     source: Bvh2  # the canonical tree the rows are made from
-    ref_of_node: IntArray  # the packed reference of each canonical node
     _made: list[np.ndarray] = field(default_factory=list)  # the rows, once made
+    _tables: list[IntArray] = field(default_factory=list)  # ref_of_node, leaf_first, leaf_count
+
+    def _numbered(self) -> list[IntArray]:
+        """Return ``[ref_of_node, leaf_first, leaf_count]``, made on first use."""
+        if not self._tables:
+            tree = self.source
+            ref_of_node = np.empty(tree.n_nodes, dtype=INDEX)
+            leaf_first = np.empty(tree.n_leaves, dtype=INDEX)
+            leaf_count = np.empty(tree.n_leaves, dtype=INDEX)
+            _number_kernel(tree.arrays(), ref_of_node, leaf_first, leaf_count)
+            if not self._tables:
+                self._tables.extend((ref_of_node, leaf_first, leaf_count))
+        return self._tables
+
+    @property
+    def ref_of_node(self) -> IntArray:
+        """The packed reference of each canonical node (a row, or ``~leaf``)."""
+        return self._numbered()[0]
+
+    @property
+    def leaf_first(self) -> IntArray:
+        """Each leaf's first triangle row, leaves numbered depth-first."""
+        return self._numbered()[1]
+
+    @property
+    def leaf_count(self) -> IntArray:
+        """Each leaf's triangle count."""
+        return self._numbered()[2]
 
     @property
     def rows(self) -> np.ndarray:
@@ -377,33 +403,29 @@ class PackedBvh2:
 
     def arrays(self) -> PackedArrays:
         """Return the arrays as a NamedTuple kernels take as one argument."""
-        return PackedArrays(*row_arrays(self.rows, self), self.root_ref)
+        tables = (self.leaf_first, self.leaf_count)
+        return PackedArrays(*row_arrays(self.rows, self, *tables), self.root_ref)
 
     def nbytes(self) -> int:
-        """Return the packed size in bytes (the rows once made)."""
-        return int(
-            sum(rows.nbytes for rows in self._made)
-            + self.leaf_first.nbytes
-            + self.leaf_count.nbytes
-            + self.tri.nbytes
-            + self.tri_prim.nbytes
-            + self.ref_of_node.nbytes
-        )
+        """Return the packed size in bytes (the rows and tables once made)."""
+        made = [*self._made, *self._tables]
+        return int(sum(a.nbytes for a in made) + self.tri.nbytes + self.tri_prim.nbytes)
 
 
 def row_arrays(
-    rows: np.ndarray, packed: PackedBvh2
+    rows: np.ndarray, packed: PackedBvh2, leaf_first: IntArray, leaf_count: IntArray
 ) -> tuple[FloatArray, IntArray, IntArray, IntArray, RealArray, IntArray, FloatArray]:
     """Return the first fields of a row layout's kernel argument.
 
-    ``rows`` and their int32 view, then ``packed``'s leaf tables, triangle rows and
-    root box, which the layouts derived from the packed one share with it.
+    ``rows`` and their int32 view, the leaf tables its ``~leaf`` references index, then
+    ``packed``'s triangle rows and root box, which the layouts derived from the packed
+    one share with it.
     """
     return (
         rows,
         rows.view(np.int32),
-        packed.leaf_first,
-        packed.leaf_count,
+        leaf_first,
+        leaf_count,
         packed.tri,
         packed.tri_prim,
         packed.root_box,
@@ -470,22 +492,16 @@ def pack_bvh2(bvh: Bvh2, hit_rows: RealArray) -> PackedBvh2:
         ``TriangleMesh.hit_rows()`` of the mesh the tree was built over; the gathered
         ``tri`` keeps their dtype (float64 for a float64 mesh, traced in float64).
     """
-    n_leaves = bvh.n_leaves
-    ref_of_node = np.empty(bvh.n_nodes, dtype=INDEX)
-    leaf_first = np.empty(n_leaves, dtype=INDEX)
-    leaf_count = np.empty(n_leaves, dtype=INDEX)
-    _number_kernel(bvh.arrays(), ref_of_node, leaf_first, leaf_count)
     tri = gather_rows(hit_rows, bvh.prim_index)
     root_box = np.empty(6, dtype=REAL)
     root_box[0::2] = bvh.node_lo[0]
     root_box[1::2] = bvh.node_hi[0]
+    # The root is row 0, or leaf 0 when it is the only node.
+    root_ref = 0 if bvh.node_count[0] == 0 else ~0
     return PackedBvh2(
-        leaf_first=leaf_first,
-        leaf_count=leaf_count,
         tri=tri,
         tri_prim=np.ascontiguousarray(bvh.prim_index),
         root_box=root_box,
-        root_ref=np.array([ref_of_node[0]], dtype=INDEX),
+        root_ref=np.array([root_ref], dtype=INDEX),
         source=bvh,
-        ref_of_node=ref_of_node,
     )

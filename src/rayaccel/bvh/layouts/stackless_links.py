@@ -116,7 +116,8 @@ class SkipBvh2:
 
     def arrays(self) -> SkipArrays:
         """Return the arrays as a NamedTuple kernels take as one argument."""
-        return SkipArrays(*row_arrays(self.rows, self.packed))
+        packed = self.packed
+        return SkipArrays(*row_arrays(self.rows, packed, packed.leaf_first, packed.leaf_count))
 
     def nbytes(self) -> int:
         """Bytes of the skip rows (leaf tables and triangles are shared with the packed layout)."""

@@ -11,15 +11,16 @@ an AVX register, Embree's BVH8) halves them again.
 Derivation from the canonical binary tree (Wald et al. 2008 §3.1): a wide node starts
 from a binary inner node's two children and repeatedly replaces the inner child with
 the largest surface area by its two children until it has ``width`` children or only
-leaves remain. Leaves are the binary tree's leaves, unchanged, so the leaf tables and
-the triangle rows of :class:`~rayaccel.bvh.layouts.bvh2.PackedBvh2` are shared. Rows are
-numbered breadth-first with the children of a row adjacent.
+leaves remain. Leaves are the binary tree's leaves, unchanged and addressed by their
+canonical node (whose ``node_first``/``node_count`` give their triangle rows), so the
+triangle rows of :class:`~rayaccel.bvh.layouts.bvh2.PackedBvh2` are shared and no other
+table is needed. Rows are numbered breadth-first with the children of a row adjacent.
 
 Row layout for width ``W`` (``8·W`` float32: 128 bytes for W = 4, 256 for W = 8): columns
 ``0:W`` are the children's ``lo.x``, ``W:2W`` ``hi.x``, then ``lo.y``, ``hi.y``, ``lo.z``,
 ``hi.z`` (structure of arrays, so a ray reads the near planes of one axis as W adjacent
 floats), ``6W:7W`` the child references as int32 (``>= 0`` a wide row, ``< 0``
-``~leaf`` as in the packed layout), ``7W`` the number of children, then padding. An
+``~node``, a leaf of the canonical tree), ``7W`` the number of children, then padding. An
 unused lane holds the empty box ``lo = +inf, hi = -inf``, which every ray misses, so the
 box test needs no lane mask.
 """
@@ -57,12 +58,12 @@ def count_column(width: int) -> int:
 
 
 class WideArrays(NamedTuple):
-    """The wide layout as one kernel argument (leaves and triangles: the packed layout's)."""
+    """The wide layout as one kernel argument (triangles: the packed layout's)."""
 
     box: FloatArray  # (n_rows, 8 * width) float32
     ref: IntArray  # int32 view of ``box``
-    leaf_first: IntArray
-    leaf_count: IntArray
+    leaf_first: IntArray  # the canonical node_first: leaf ``~ref``'s first triangle row
+    leaf_count: IntArray  # the canonical node_count
     tri: FloatArray
     tri_prim: IntArray
     root_box: FloatArray
@@ -85,7 +86,10 @@ class WideBvh:
 
     def arrays(self) -> WideArrays:
         """Return the arrays kernels take as one argument."""
-        return WideArrays(*row_arrays(self.rows, self.packed), self.root_ref)
+        tree = self.packed.source
+        return WideArrays(
+            *row_arrays(self.rows, self.packed, tree.node_first, tree.node_count), self.root_ref
+        )
 
     def nbytes(self) -> int:
         """Bytes of the wide rows (the shared packed arrays count with the packed layout)."""
@@ -93,11 +97,11 @@ class WideBvh:
 
 
 @cpu_kernel()
-def _collapse_kernel(bvh, ref_of_node, rows, width):
+def _collapse_kernel(bvh, rows, width):
     """Fill ``rows`` with the wide nodes over the canonical binary tree; return how many.
 
-    The tree's root must be an inner node. Leaves get the packed layout's ``~leaf``
-    references (``ref_of_node``).
+    The tree's root must be an inner node. A leaf child's reference is ``~node``, its
+    canonical node (whose ``node_first`` is its first triangle row).
     """
     ints = rows.view(np.int32)
     n_rows = 1
@@ -141,8 +145,8 @@ def _collapse_kernel(bvh, ref_of_node, rows, width):
                     rows[w, 2 * a * width + c] = np.inf
                     rows[w, (2 * a + 1) * width + c] = -np.inf
             if c < count:
-                ref = ref_of_node[cand[c]]
-                if ref >= 0:
+                ref = ~cand[c]
+                if bvh.node_count[cand[c]] == 0:
                     queue[n_rows] = cand[c]
                     ref = n_rows
                     n_rows += 1
@@ -173,5 +177,5 @@ def wide_layout(packed: PackedBvh2, width: int = 8) -> WideBvh:
     # At most one wide row per binary inner node. The zeroed buffer's pages past the rows
     # written are never touched, so the view of the rows costs no memory beyond them.
     rows = aligned_zeros((n_inner, floats), REAL, CACHE_LINE)
-    n_rows = _collapse_kernel(tree.arrays(), packed.ref_of_node, rows, width)
+    n_rows = _collapse_kernel(tree.arrays(), rows, width)
     return WideBvh(rows[:n_rows], packed, np.array([0], dtype=INDEX), width)
