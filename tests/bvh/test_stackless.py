@@ -157,8 +157,9 @@ def test_derived_layouts_counted_in_info_bytes():
         assert after == before + layout.nbytes() + made, key
         before = after
     assert packed.has_rows
-    shared = packed.tri.nbytes + packed.tri_prim.nbytes
-    assert packed.nbytes() == shared + packed.rows.nbytes + tables
+    # The triangle ids are the tree's own prim_index, counted with the tree.
+    assert np.shares_memory(packed.tri_prim, tree.prim_index)
+    assert packed.nbytes() == packed.tri.nbytes + packed.rows.nbytes + tables
 
 
 def _check_all_against_stack(accel_or_bvh, mesh, rays, label):

@@ -407,9 +407,15 @@ class PackedBvh2:
         return PackedArrays(*row_arrays(self.rows, self, *tables), self.root_ref)
 
     def nbytes(self) -> int:
-        """Return the packed size in bytes (the rows and tables once made)."""
+        """Return the packed size in bytes (the rows and tables once made).
+
+        The triangle ids count only when they are a copy: usually they are the canonical
+        tree's ``prim_index`` itself, which the tree's own bytes count.
+        """
         made = [*self._made, *self._tables]
-        return int(sum(a.nbytes for a in made) + self.tri.nbytes + self.tri_prim.nbytes)
+        if not np.shares_memory(self.tri_prim, self.source.prim_index):
+            made.append(self.tri_prim)
+        return int(sum(a.nbytes for a in made) + self.tri.nbytes)
 
 
 def row_arrays(
