@@ -146,6 +146,8 @@ def clip_triangle_box_py(tri, prim, lo, hi, poly, scratch, min_vertices):
     Planes are taken in the order x >= lo.x, x <= hi.x, y >= lo.y, ... Sutherland–Hodgman
     keeps a vertex with signed distance ``d >= 0`` and adds the crossing point
     ``p_i + d_i/(d_i − d_j)·(p_j − p_i)`` for an edge whose ends are on different sides.
+    A plane with every vertex inside would return the polygon unchanged, so it is
+    skipped (a triangle straddling one kd split plane is cut by one or two planes).
     """
     for v in range(3):
         for k in range(3):
@@ -153,14 +155,22 @@ def clip_triangle_box_py(tri, prim, lo, hi, poly, scratch, min_vertices):
     m = 3
     src = poly
     dst = scratch
+    swapped = False
     for plane in range(6):
         axis = plane // 2
         keep_above = plane % 2 == 0
         value = lo[axis] if keep_above else hi[axis]
+        cut = False
+        for i in range(m):
+            if (src[i, axis] < value) if keep_above else (src[i, axis] > value):
+                cut = True
+                break
+        if not cut:
+            continue
         # One Sutherland–Hodgman pass: src[:m] -> dst[:n_dst].
         n_dst = 0
         for i in range(m):
-            j = (i + 1) % m
+            j = i + 1 if i + 1 < m else 0
             di = src[i, axis] - value
             dj = src[j, axis] - value
             if not keep_above:
@@ -179,7 +189,11 @@ def clip_triangle_box_py(tri, prim, lo, hi, poly, scratch, min_vertices):
         if m < min_vertices:
             return m
         src, dst = dst, src
-    # Six passes: the polygon is back in ``poly``.
+        swapped = not swapped
+    if swapped:
+        for i in range(m):
+            for k in range(3):
+                poly[i, k] = src[i, k]
     return m
 
 

@@ -73,9 +73,10 @@ from typing import NamedTuple
 
 import numba
 import numpy as np
+from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
-from rayaccel.dtypes import INDEX, REAL
+from rayaccel.dtypes import REAL
 from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, KdTree, max_depth_for
 from rayaccel.kernels.box_grow import store_box
 from rayaccel.kernels.clip import clip_triangle_box, polygon_bounds
@@ -118,44 +119,94 @@ class SweepParams(NamedTuple):
     max_duplication: float = np.inf
 
 
+#: Key of an unused event slot (a planar triangle's second one): above every real key.
+_NO_EVENT = 3 << 34
+
+
 def initial_events(tri: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Return the root's events ``(pos, type, axis, prim)``, sorted by (axis, pos, type)."""
-    n = tri.shape[0]
-    lo = tri.min(axis=1) + np.float32(0.0)  # + 0.0 turns -0.0 into +0.0
-    hi = tri.max(axis=1) + np.float32(0.0)
-    planar = lo == hi
-    pos_parts = []
-    type_parts = []
-    axis_parts = []
-    prim_parts = []
-    prims = np.arange(n, dtype=INDEX)
-    for a in range(3):
-        p = planar[:, a]
-        q = ~p
-        pos_parts += [lo[p, a], lo[q, a], hi[q, a]]
-        type_parts += [
-            np.full(int(p.sum()), PLANAR, np.int8),
-            np.full(int(q.sum()), START, np.int8),
-            np.full(int(q.sum()), END, np.int8),
-        ]
-        axis_parts += [np.full(int(p.sum()) + 2 * int(q.sum()), a, np.int8)]
-        prim_parts += [prims[p], prims[q], prims[q]]
-    pos = np.concatenate(pos_parts).astype(REAL)
-    typ = np.concatenate(type_parts)
-    axis = np.concatenate(axis_parts)
-    prim = np.concatenate(prim_parts).astype(INDEX)
-    # One 36-bit key (axis, position with its float order, type), sorted stably by
-    # the parallel radix sort: the order of a lexsort on (axis, pos, type).
-    bits = pos.view(np.uint32).astype(np.int64)
-    ordered = np.where(bits >= 1 << 31, (~bits) & 0xFFFFFFFF, bits | 1 << 31)
-    key = (axis.astype(np.int64) << 34) | (ordered << 2) | typ.astype(np.int64)
-    _, order = radix_sort(key, np.arange(key.size, dtype=np.int32), 36)
-    return (
-        np.ascontiguousarray(pos[order]),
-        np.ascontiguousarray(typ[order]),
-        np.ascontiguousarray(axis[order]),
-        np.ascontiguousarray(prim[order]),
-    )
+    """Return the root's events ``(pos, type, axis, prim)``, sorted by (axis, pos, type).
+
+    Each event is one 36-bit key (axis, the position's bits in float order, type),
+    sorted stably by the parallel radix sort; equal keys keep triangle order, as a
+    lexsort on (axis, pos, type) would. The keys decode back to the events.
+    """
+    keys, prims = _event_keys(np.ascontiguousarray(tri, dtype=REAL).view(np.int32))
+    keys, prims = radix_sort(keys, prims, 36)
+    count = int(np.searchsorted(keys, _NO_EVENT))
+    pos_bits, typ, axis = _decode_events(keys[:count])
+    return pos_bits.view(REAL), typ, axis, np.ascontiguousarray(prims[:count])
+
+
+@cpu_kernel(parallel=True)
+def _event_keys(tri_bits):
+    """Return the sort keys and triangle ids of each triangle's events, six slots each.
+
+    ``tri_bits`` is the float32 corner array viewed as int32: the key holds the
+    bits of the corner that bounds the triangle on an axis (``-0.0`` as ``+0.0``), in
+    an order that sorts like the float. Slots ``6t + 2a`` and ``6t + 2a + 1`` hold
+    triangle ``t``'s start and end on axis ``a``, or its planar event and
+    :data:`_NO_EVENT`.
+    """
+    n = tri_bits.shape[0]
+    keys = np.empty(6 * n, dtype=np.int64)
+    prims = np.empty(6 * n, dtype=np.int32)
+    for t in prange(n):
+        for a in range(3):
+            lo = tri_bits[t, 0, a]
+            hi = lo
+            for v in range(1, 3):
+                b = tri_bits[t, v, a]
+                if _float_order(b) < _float_order(lo):
+                    lo = b
+                if _float_order(b) > _float_order(hi):
+                    hi = b
+            slot = 6 * t + 2 * a
+            prims[slot] = t
+            prims[slot + 1] = t
+            if _float_order(lo) == _float_order(hi):
+                keys[slot] = _event_key(a, lo, PLANAR)
+                keys[slot + 1] = _NO_EVENT
+            else:
+                keys[slot] = _event_key(a, lo, START)
+                keys[slot + 1] = _event_key(a, hi, END)
+    return keys, prims
+
+
+@cpu_inline
+def _float_order(bits):
+    """Return float32 ``bits`` (as int32) as an int64 in the float's order, ``-0.0 == +0.0``."""
+    u = np.int64(bits) & 0xFFFFFFFF
+    if u == 0x80000000:
+        u = np.int64(0)
+    if u >= 0x80000000:
+        return (~u) & 0xFFFFFFFF
+    return u | 0x80000000
+
+
+@cpu_inline
+def _event_key(axis, bits, kind):
+    """Return the sort key of an event on ``axis`` at the float32 ``bits`` of type ``kind``."""
+    return (np.int64(axis) << 34) | (_float_order(bits) << 2) | np.int64(kind)
+
+
+@cpu_kernel(parallel=True)
+def _decode_events(keys):
+    """Return ``(position bits as int32, type, axis)`` of sorted event keys."""
+    m = keys.shape[0]
+    pos_bits = np.empty(m, dtype=np.int32)
+    typ = np.empty(m, dtype=np.int8)
+    axis = np.empty(m, dtype=np.int8)
+    for i in prange(m):
+        key = keys[i]
+        ordered = (key >> 2) & 0xFFFFFFFF
+        if ordered >= 0x80000000:
+            u = ordered & 0x7FFFFFFF
+        else:
+            u = (~ordered) & 0xFFFFFFFF
+        pos_bits[i] = np.int32(u - (np.int64(1) << 32) if u >= 0x80000000 else u)
+        typ[i] = np.int8(key & 3)
+        axis[i] = np.int8(key >> 34)
+    return pos_bits, typ, axis
 
 
 def build_sweep(mesh: TriangleMesh, params: SweepParams) -> KdTree:
@@ -305,6 +356,50 @@ def _set_event(pos, typ, axis, prim, j, p, t, a, pr):
     prim[j] = pr
 
 
+@cpu_inline
+def _axis_range(axis, begin, end, k):
+    """Return the range of events ``begin:end`` on axis ``k`` (sorted by axis first)."""
+    lo = begin
+    hi = end
+    while lo < hi:  # the first event on an axis >= k
+        mid = (lo + hi) >> 1
+        if axis[mid] < k:
+            lo = mid + 1
+        else:
+            hi = mid
+    first = lo
+    hi = end
+    while lo < hi:  # the first event on an axis > k
+        mid = (lo + hi) >> 1
+        if axis[mid] <= k:
+            lo = mid + 1
+        else:
+            hi = mid
+    return first, lo
+
+
+#: New-event segments up to this long are sorted in place (no allocation per node).
+_INSERTION_SORT_MAX = 48
+
+
+@cpu_inline
+def _insertion_sort_events(pos, typ, prim, begin, end):
+    """Sort events ``begin:end`` (one axis) by ``(position, type)`` in place, stably."""
+    for i in range(begin + 1, end):
+        p = pos[i]
+        t = typ[i]
+        pr = prim[i]
+        j = i - 1
+        while j >= begin and (pos[j] > p or (pos[j] == p and typ[j] > t)):
+            pos[j + 1] = pos[j]
+            typ[j + 1] = typ[j]
+            prim[j + 1] = prim[j]
+            j -= 1
+        pos[j + 1] = p
+        typ[j + 1] = t
+        prim[j + 1] = pr
+
+
 @cpu_kernel()
 def _half_area(lo0, lo1, lo2, hi0, hi1, hi2):
     ex = np.float64(hi0) - lo0
@@ -347,10 +442,8 @@ def _build_kernel(
     e_pos, e_typ, e_axis, e_prim = _new_events(cap)
     m0 = pos0.shape[0]
     _copy_events(e_pos, e_typ, e_axis, e_prim, 0, pos0, typ0, axis0, prim0, 0, m0)
-    # Per-node scratch: kept and new events of one child, sides, clipping buffers.
-    tmp_cap = max(m0, 16)
-    k_pos, k_typ, k_axis, k_prim = _new_events(tmp_cap)
-    n_pos, n_typ, n_axis, n_prim = _new_events(tmp_cap)
+    # Per-node scratch (grown as needed): new events of one child, sides, clipping buffers.
+    n_pos, n_typ, n_axis, n_prim = _new_events(1536)
     side = np.zeros(n_prims, dtype=np.int8)
     poly = np.empty((16, 3), dtype=np.float64)
     poly_tmp = np.empty((16, 3), dtype=np.float64)
@@ -359,8 +452,9 @@ def _build_kernel(
     bounds = np.empty(6, dtype=np.float32)
     box_lo = np.empty(3, dtype=np.float32)
     box_hi = np.empty(3, dtype=np.float32)
-    both_bounds = np.empty((tmp_cap // 2 + 1, 6), dtype=np.float32)
-    keep = np.empty(tmp_cap // 2 + 1, dtype=np.int8)
+    both_bounds = np.empty((256, 6), dtype=np.float32)
+    keep = np.empty(256, dtype=np.int8)
+    straddling = np.empty(256, dtype=np.int32)
     o_lo = np.empty(3, dtype=np.float32)
     o_hi = np.empty(3, dtype=np.float32)
     # Output, grown as needed.
@@ -495,13 +589,13 @@ def _build_kernel(
                             best_axis = k
                             best_pos = p
                             best_side = _LEFT
-                        # ... or right.
+                        # ... or right (the same split when there are none).
                         nl = n_l
                         nr = n_r + p_planar
                         cost = k_t + k_i * (p_l * nl + p_r * nr)
                         if nl == 0 or nr == 0:
                             cost *= bonus
-                        if cost < best_cost:
+                        if p_planar > 0 and cost < best_cost:
                             best_cost = cost
                             best_axis = k
                             best_pos = p
@@ -526,12 +620,10 @@ def _build_kernel(
         if best_axis >= 0:
             k = best_axis
             p = best_pos
-            for i in range(begin, end):
-                if e_axis[i] == k:
-                    side[e_prim[i]] = _BOTH
-            for i in range(begin, end):
-                if e_axis[i] != k:
-                    continue
+            k_begin, k_end = _axis_range(e_axis, begin, end, k)
+            for i in range(k_begin, k_end):
+                side[e_prim[i]] = _BOTH
+            for i in range(k_begin, k_end):
                 t = e_typ[i]
                 q = e_pos[i]
                 if t == END and q <= p:
@@ -545,14 +637,17 @@ def _build_kernel(
                         side[e_prim[i]] = _RIGHT
                     else:
                         side[e_prim[i]] = best_side
-            for i in range(begin, end):
-                if e_axis[i] == k and e_typ[i] != END:
+            # Count the sides; list the straddling triangles in event order.
+            straddling = _grow_f(straddling, n)
+            for i in range(k_begin, k_end):
+                if e_typ[i] != END:
                     s = side[e_prim[i]]
                     if s == _LEFT:
                         n_left += 1
                     elif s == _RIGHT:
                         n_right += 1
                     else:
+                        straddling[n_both] = e_prim[i]
                         n_both += 1
             # A split that separates nothing (every triangle on both sides, as for many
             # copies of one triangle under the median) would only repeat the node.
@@ -568,8 +663,9 @@ def _build_kernel(
                 out_count = _grow_f(out_count, n_leaves + 1)
             out_prims = _grow_f(out_prims, n_refs + n)
             first = n_refs
-            for i in range(begin, end):
-                if e_axis[i] == e_axis[begin] and e_typ[i] != END:
+            a_begin, a_end = _axis_range(e_axis, begin, end, e_axis[begin])
+            for i in range(a_begin, a_end):
+                if e_typ[i] != END:
                     out_prims[n_refs] = e_prim[i]
                     n_refs += 1
             out_first[n_leaves] = first
@@ -598,10 +694,6 @@ def _build_kernel(
         need = child_begin + right_cap + left_cap
         if need > e_pos.shape[0]:
             e_pos, e_typ, e_axis, e_prim = _grow_events(e_pos, e_typ, e_axis, e_prim, need)
-        # A node may hold more events than the root: a triangle planar in an axis gets a
-        # start and an end there once clipped (its bounds are padded outward).
-        if end - begin > k_pos.shape[0]:
-            k_pos, k_typ, k_axis, k_prim = _grow_events(k_pos, k_typ, k_axis, k_prim, end - begin)
         if n_new_max > n_pos.shape[0]:
             n_pos, n_typ, n_axis, n_prim = _grow_events(n_pos, n_typ, n_axis, n_prim, n_new_max)
         if n_both > both_bounds.shape[0]:
@@ -627,70 +719,55 @@ def _build_kernel(
                     h_hi1 = p
                 else:
                     h_hi2 = p
-            # Kept events (already sorted).
-            n_kept = 0
-            for i in range(begin, end):
-                if side[e_prim[i]] == this_side:
-                    _copy_event(
-                        k_pos, k_typ, k_axis, k_prim, n_kept, e_pos, e_typ, e_axis, e_prim, i
-                    )
-                    n_kept += 1
             # New events of the straddling triangles, axis by axis.
-            j = 0
             dropped = 0
-            for i in range(begin, end):
-                if e_axis[i] == k and e_typ[i] == START and side[e_prim[i]] == _BOTH:
-                    pr = e_prim[i]
-                    box_lo[0] = h_lo0
-                    box_lo[1] = h_lo1
-                    box_lo[2] = h_lo2
-                    box_hi[0] = h_hi0
-                    box_hi[1] = h_hi1
-                    box_hi[2] = h_hi2
-                    m = 0
-                    keep[j] = 1
-                    if params.perfect_splits:
-                        m = clip_triangle_box(tri, pr, box_lo, box_hi, poly, poly_tmp, 1)
-                        if m < 1:
-                            # The part on this side is empty: drop it here when the other
-                            # side's part is not (its box straddled the plane, the
-                            # triangle does not); keep it when rounding emptied both.
-                            for a in range(3):
-                                o_lo[a] = c_lo[a]
-                                o_hi[a] = c_hi[a]
-                            if half == 0:
-                                o_hi[k] = p
-                            else:
-                                o_lo[k] = p
-                            if clip_triangle_box(tri, pr, o_lo, o_hi, poly, poly_tmp, 1) >= 1:
-                                keep[j] = 0
-                                dropped += 1
-                    if m >= 1:
-                        polygon_bounds(poly, m, box_lo, box_hi, bounds, params.round_pad)
-                    else:
-                        # The triangle's box cut by the cell (also the fallback when
-                        # rounding clips a touching triangle away).
+            for j in range(n_both):
+                pr = straddling[j]
+                box_lo[0] = h_lo0
+                box_lo[1] = h_lo1
+                box_lo[2] = h_lo2
+                box_hi[0] = h_hi0
+                box_hi[1] = h_hi1
+                box_hi[2] = h_hi2
+                m = 0
+                keep[j] = 1
+                if params.perfect_splits:
+                    m = clip_triangle_box(tri, pr, box_lo, box_hi, poly, poly_tmp, 1)
+                    if m < 1:
+                        # The part on this side is empty: drop it here when the other
+                        # side's part is not (its box straddled the plane, the
+                        # triangle does not); keep it when rounding emptied both.
                         for a in range(3):
-                            lo_a = min(tri[pr, 0, a], tri[pr, 1, a], tri[pr, 2, a])
-                            hi_a = max(tri[pr, 0, a], tri[pr, 1, a], tri[pr, 2, a])
-                            bounds[a] = max(lo_a, box_lo[a])
-                            bounds[3 + a] = min(hi_a, box_hi[a])
+                            o_lo[a] = c_lo[a]
+                            o_hi[a] = c_hi[a]
+                        if half == 0:
+                            o_hi[k] = p
+                        else:
+                            o_lo[k] = p
+                        if clip_triangle_box(tri, pr, o_lo, o_hi, poly, poly_tmp, 1) >= 1:
+                            keep[j] = 0
+                            dropped += 1
+                if m >= 1:
+                    polygon_bounds(poly, m, box_lo, box_hi, bounds, params.round_pad)
+                else:
+                    # The triangle's box cut by the cell (also the fallback when
+                    # rounding clips a touching triangle away).
                     for a in range(3):
-                        if bounds[a] > bounds[3 + a]:
-                            bounds[3 + a] = bounds[a]
-                        both_bounds[j, a] = bounds[a]
-                        both_bounds[j, 3 + a] = bounds[3 + a]
-                    j += 1
+                        lo_a = min(tri[pr, 0, a], tri[pr, 1, a], tri[pr, 2, a])
+                        hi_a = max(tri[pr, 0, a], tri[pr, 1, a], tri[pr, 2, a])
+                        bounds[a] = max(lo_a, box_lo[a])
+                        bounds[3 + a] = min(hi_a, box_hi[a])
+                for a in range(3):
+                    if bounds[a] > bounds[3 + a]:
+                        bounds[3 + a] = bounds[a]
+                    both_bounds[j, a] = bounds[a]
+                    both_bounds[j, 3 + a] = bounds[3 + a]
             n_new = 0
             for a in range(3):
                 seg = n_new
-                j = 0
-                for i in range(begin, end):
-                    if e_axis[i] == k and e_typ[i] == START and side[e_prim[i]] == _BOTH:
-                        pr = e_prim[i]
-                        if not keep[j]:
-                            j += 1
-                            continue
+                for j in range(n_both):
+                    if keep[j]:
+                        pr = straddling[j]
                         blo = both_bounds[j, a]
                         bhi = both_bounds[j, 3 + a]
                         if blo == 0:
@@ -704,10 +781,11 @@ def _build_kernel(
                             _set_event(n_pos, n_typ, n_axis, n_prim, n_new, blo, START, a, pr)
                             _set_event(n_pos, n_typ, n_axis, n_prim, n_new + 1, bhi, END, a, pr)
                             n_new += 2
-                        j += 1
-                # Sort this axis's few new events by (position, type): stable sorts.
+                # Sort this axis's few new events by (position, type), stably.
                 cnt = n_new - seg
-                if cnt > 1:
+                if 1 < cnt <= _INSERTION_SORT_MAX:
+                    _insertion_sort_events(n_pos, n_typ, n_prim, seg, n_new)
+                elif cnt > 1:
                     o1 = np.argsort(n_typ[seg:n_new], kind="mergesort")
                     tp = n_pos[seg:n_new][o1]
                     o2 = np.argsort(tp, kind="mergesort")
@@ -718,26 +796,33 @@ def _build_kernel(
                     n_pos[seg:n_new] = sp_pos
                     n_typ[seg:n_new] = sp_typ
                     n_prim[seg:n_new] = sp_prim
-            # Merge kept and new events into the child's range.
+            # Merge the events of this side's triangles (already sorted, read in place:
+            # the child's range lies after the node's) with the new ones.
             start_w = write
-            ia = 0
+            ia = begin
             ib = 0
-            while ia < n_kept or ib < n_new:
-                take_a = ib >= n_new or (
-                    ia < n_kept
+            while True:
+                while ia < end and side[e_prim[ia]] != this_side:
+                    ia += 1
+                if ia == end and ib == n_new:
+                    break
+                take_a = ib == n_new or (
+                    ia < end
                     and not _less(
-                        n_axis[ib], n_pos[ib], n_typ[ib], k_axis[ia], k_pos[ia], k_typ[ia]
+                        n_axis[ib], n_pos[ib], n_typ[ib], e_axis[ia], e_pos[ia], e_typ[ia]
                     )
                 )
                 if take_a:
-                    _copy_event(
-                        e_pos, e_typ, e_axis, e_prim, write, k_pos, k_typ, k_axis, k_prim, ia
-                    )
+                    e_pos[write] = e_pos[ia]
+                    e_typ[write] = e_typ[ia]
+                    e_axis[write] = e_axis[ia]
+                    e_prim[write] = e_prim[ia]
                     ia += 1
                 else:
-                    _copy_event(
-                        e_pos, e_typ, e_axis, e_prim, write, n_pos, n_typ, n_axis, n_prim, ib
-                    )
+                    e_pos[write] = n_pos[ib]
+                    e_typ[write] = n_typ[ib]
+                    e_axis[write] = n_axis[ib]
+                    e_prim[write] = n_prim[ib]
                     ib += 1
                 write += 1
             # Push the child: right first (popped last).
