@@ -342,12 +342,6 @@ def _copy_events(pos, typ, axis, prim, at, from_pos, from_typ, from_axis, from_p
 
 
 @cpu_inline
-def _copy_event(pos, typ, axis, prim, j, from_pos, from_typ, from_axis, from_prim, i):
-    """Copy event ``i`` of the ``from_*`` arrays to event ``j`` of the event arrays."""
-    _set_event(pos, typ, axis, prim, j, from_pos[i], from_typ[i], from_axis[i], from_prim[i])
-
-
-@cpu_inline
 def _set_event(pos, typ, axis, prim, j, p, t, a, pr):
     """Write event ``j``: position ``p``, type ``t``, axis ``a``, triangle ``pr``."""
     pos[j] = p
