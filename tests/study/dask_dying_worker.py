@@ -18,7 +18,7 @@ from rayaccel.study import sweep as sweep_mod
 from rayaccel.study.config import load_config
 
 
-def dies_once(cell, config, mesh, rayset, accel=None):
+def dies_once(cell, config, mesh, rayset, accel=None, reference=None):
     """Kill the worker process the first time a counters cell runs (marker file)."""
     marker = Path(os.environ["RAYACCEL_TEST_MARKER"])
     if cell.kind == "counters" and not marker.exists():
@@ -26,7 +26,7 @@ def dies_once(cell, config, mesh, rayset, accel=None):
         os._exit(1)
     from rayaccel.study.cells import run_cell
 
-    return run_cell(cell, config, mesh, rayset, accel)
+    return run_cell(cell, config, mesh, rayset, accel, reference)
 
 
 def main() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import os
@@ -19,7 +20,7 @@ from rayaccel.study.cells import enumerate_cells, homes
 from rayaccel.study.config import ConfigError, parse_config
 from rayaccel.study.raysets import scene_raysets
 from rayaccel.study.results import ResultsFile, ResultsFormatError, read_results
-from rayaccel.study.sweep import MAX_ATTEMPTS, sweep
+from rayaccel.study.sweep import MAX_ATTEMPTS, _DaskRunner, sweep
 
 TINY = """\
 scenes = ["cornell-box"]
@@ -245,22 +246,43 @@ def test_structure_homes_turn_from_scene_to_scene():
     assert set(homes(groups, 1, 5).values()) == {0}
 
 
-def test_a_counter_cell_uses_the_structure_it_is_handed(finished, monkeypatch):
-    """On Dask a counter cell receives its structure from a build task: no second build."""
+def test_a_traversal_keeps_its_worker_for_the_whole_sweep():
+    """Counter cells go to a worker per (builder, traversal), the same in every scene, so no
+    kernel is loaded on two workers; the groups are spread over both workers."""
+    runner = object.__new__(_DaskRunner)
+    runner.cell_bins = {}
+    cells = enumerate_cells(parse_config(_with('passes = ["counters"]')))
+    other_scene = [dataclasses.replace(cell, scene="teapot") for cell in cells]
+    first = runner._cell_homes(cells, ["a", "b"])
+    assert runner._cell_homes(other_scene, ["a", "b"]) == first
+    assert set(first.values()) == {"a", "b"}
+    assert set(runner._cell_homes(cells, ["a"]).values()) == {"a"}
+
+
+def test_a_counter_cell_uses_the_structure_and_answers_it_is_handed(finished, monkeypatch):
+    """On Dask a counter cell receives its structure from a build task and its ray set's
+    oracle answers from a task of their own: nothing is built or answered again."""
     results, _ = finished
     config = parse_config(_with('passes = ["counters"]'))
     cell = enumerate_cells(config)[0]
     mesh = catalog.get(cell.scene)
     rayset = scene_raysets(mesh, cell.scene, config.rays, results.with_suffix(".rays"))[cell.rayset]
     handed = cells_mod.counter_structure(config, mesh, cell.builder)
+    answers = cells_mod.counter_reference(config, mesh, rayset)
     monkeypatch.setattr(cells_mod, "_ACCELS", {})
+    monkeypatch.setattr(cells_mod, "_REFERENCES", {})
 
     def no_build(*args, **kwargs):
         raise AssertionError("built again")
 
+    def no_oracle(*args, **kwargs):
+        raise AssertionError("answered again")
+
     monkeypatch.setattr(cells_mod, "_build_once", no_build)
-    record = cells_mod.run_cell(cell, config, mesh, rayset, handed)
+    monkeypatch.setattr(cells_mod, "reference_hits", no_oracle)
+    record = cells_mod.run_cell(cell, config, mesh, rayset, handed, answers)
     assert record["status"] == "ok", record.get("error")
+    assert record["validated"] > 0
     assert record["mismatches"] == 0
     assert cells_mod._ACCELS[(mesh.digest(), cell.builder)] is handed
 

@@ -177,6 +177,28 @@ def counter_structure(config: SweepConfig, mesh: TriangleMesh, builder: str) -> 
     return structure(mesh, builder, 1, config)
 
 
+def counter_reference(config: SweepConfig, mesh: TriangleMesh, rayset: RaySet) -> Any:
+    """Return the oracle's answers to ``rayset``'s sampled rays (one thread), kept here too.
+
+    The Dask runner submits it once per ray set and hands the result to the ray set's
+    counter cells (:func:`run_cell`'s ``reference``), so no two workers compute it.
+    """
+    with _Threads(1):
+        return _reference(config, mesh, rayset)
+
+
+def _reference(config: SweepConfig, mesh: TriangleMesh, rayset: RaySet) -> Any:
+    """Return this process's oracle answers to ``rayset`` (computed on first use)."""
+    key = _reference_key(config, mesh, rayset)
+    if key not in _REFERENCES:
+        _REFERENCES[key] = reference_hits(mesh, rayset, config.validate, config.rays.seed)
+    return _REFERENCES[key]
+
+
+def _reference_key(config: SweepConfig, mesh: TriangleMesh, rayset: RaySet) -> tuple[Any, ...]:
+    return (mesh.digest(), rayset.kind, rayset.n_rays, config.validate, config.rays.seed)
+
+
 def _build_once(mesh: TriangleMesh, builder: str, config: SweepConfig) -> api.Accel:
     key, options = config.variant(builder)
     return api.build(mesh, key, **options)
@@ -225,11 +247,7 @@ def _counters(cell: Cell, config: SweepConfig, mesh: TriangleMesh, rayset: RaySe
     with _Threads(1):
         accel = structure(mesh, cell.builder, 1, config)
         hits = _trace(accel, cell, config, rayset.rays, rayset.query, stats=True)
-        ref_key = (mesh.digest(), rayset.kind, rayset.n_rays, config.validate, config.rays.seed)
-        if ref_key not in _REFERENCES:
-            _REFERENCES[ref_key] = reference_hits(mesh, rayset, config.validate,
-                                                  config.rays.seed)  # fmt: skip
-        ref = _REFERENCES[ref_key]
+        ref = _reference(config, mesh, rayset)
     record = counter_summary(hits.stats)
     record["n_rays"] = rayset.n_rays
     record["hit_rate"] = round(float(np.mean(hits.hit)), 6) if rayset.n_rays else 0.0
@@ -295,16 +313,21 @@ def run_cell(
     mesh: TriangleMesh,
     rayset: RaySet | None,
     accel: api.Accel | None = None,
+    reference: Any = None,
 ) -> Record:
     """Run one cell; return its record (``status`` "ok", or "failed" with the error).
 
-    ``accel``, the cell's structure built elsewhere (:func:`counter_structure`), is
-    kept for the cells that follow in this process. The record carries ``seconds``,
+    ``accel``, the cell's structure built elsewhere (:func:`counter_structure`), and
+    ``reference``, its ray set's oracle answers computed elsewhere
+    (:func:`counter_reference`), are kept for the cells that follow in this process.
+    The record carries ``seconds``,
     the cell's own wall-clock time, and when (``started``, Unix time) and where
     (``host``, ``pid``) it ran.
     """
     if accel is not None:
         _ACCELS.setdefault((mesh.digest(), cell.builder), accel)
+    if reference is not None and rayset is not None:
+        _REFERENCES.setdefault(_reference_key(config, mesh, rayset), reference)
     start = time.perf_counter()
     record: Record = cell.fields()
     record.update(started=time.time(), host=socket.gethostname(), pid=os.getpid())

@@ -19,8 +19,10 @@ timings never share a machine; counter cells fill the workers. Each structure of
 a scene's counter cells is built once, by a task of its own (one thread) on its
 home worker (structures spread over the workers by their cell counts, turned by one
 worker from scene to scene so that one builder's structures are not all built on
-one worker); its cells prefer that worker, and a cell that Dask moves to another
-worker takes a copy of the structure with it rather than building it again. A
+one worker), and each ray set's oracle answers are computed once, by a task of their
+own. A counter cell prefers its traversal's worker, the same for the whole sweep (so
+each worker loads only its own traversals' kernels), and takes the structure and the
+answers from those tasks wherever it runs rather than building or answering again. A
 worker that dies has its cell re-run by Dask (up to its ``allowed-failures``), and
 then by the sweep, up to :data:`MAX_ATTEMPTS` times in all; a mesh or ray set that
 died with it (scattered data cannot be recomputed) is scattered again first. The
@@ -43,6 +45,7 @@ from rayaccel.study.cells import (
     Cell,
     Record,
     cells_by_scene,
+    counter_reference,
     counter_structure,
     enumerate_cells,
     homes,
@@ -230,12 +233,13 @@ class _SceneInputs:
     """
 
     def __init__(self, client: Any, config: SweepConfig, mesh: Any, raysets: dict[str, Any],
-                 home: dict[str, str]) -> None:  # fmt: skip
+                 home: dict[str, str], cell_home: dict[tuple[str, str], str]) -> None:  # fmt: skip
         self.client = client
         self.config = config
         self.mesh = mesh
         self.raysets = raysets
         self.home = home
+        self.cell_home = cell_home
         self.futures: dict[str, Any] = {}
         #: How often the inputs were made again (a cell's failure renews only the
         #: inputs it was submitted with, not ones already made again after it).
@@ -284,6 +288,19 @@ class _SceneInputs:
         )  # fmt: skip
 
 
+    def reference_future(self, name: str | None) -> Any:
+        """Return the task answering ray set ``name``'s sampled rays with the oracle (once)."""
+        if not name:
+            return None
+        return self._live(
+            f"reference:{name}",
+            lambda: self.client.submit(
+                counter_reference, self.config, self.mesh_future(), self.rayset_future(name),
+                pure=False, priority=1,
+            ),
+        )  # fmt: skip
+
+
 class _DaskRunner(_Runner):
     """Cells on a ``dask.distributed`` cluster (see the module docstring).
 
@@ -313,6 +330,9 @@ class _DaskRunner(_Runner):
         self.done = as_completed()
         #: Scenes run so far, which turns the structures' homes (:func:`homes`).
         self.turn = 0
+        #: The worker (by position) of each (builder, traversal)'s counter cells, kept
+        #: for the whole sweep (:meth:`_cell_homes`).
+        self.cell_bins: dict[tuple[str, str], int] = {}
 
     def close(self) -> None:
         self.client.close()
@@ -337,9 +357,10 @@ class _DaskRunner(_Runner):
             future = self.client.submit(run_cell, cell, config, mesh_f, rayset, workers=[host],
                                         pure=False)  # fmt: skip
         else:
+            home = inputs.cell_home[cell.builder, str(cell.traversal)]
             future = self.client.submit(run_cell, cell, config, mesh_f, rayset,
                                         inputs.structure_future(cell.builder),
-                                        workers=[inputs.home[cell.builder]],
+                                        inputs.reference_future(cell.rayset), workers=[home],
                                         allow_other_workers=True, pure=False)  # fmt: skip
         self.futures[future] = (cell, host, inputs, inputs.generation)
         self.done.add(future)
@@ -370,6 +391,32 @@ class _DaskRunner(_Runner):
             state.finish(record, self.attempts[cell.key])
         self._feed_exclusive()
 
+    def _cell_homes(self, cells: list[Cell], addresses: list[str]) -> dict[tuple[str, str], str]:
+        """Return the worker of each (builder, traversal)'s counter cells.
+
+        A traversal's cells stay on one worker for the whole sweep, every scene
+        included, so each worker loads the kernels of its own traversals only (a
+        kernel's first call in a process loads it, 50–150 ms). Groups are placed when
+        first seen, heaviest first on the least loaded worker (as
+        :func:`rayaccel.study.cells.balance`).
+        """
+        groups: dict[tuple[str, str], int] = {}
+        for cell in cells:
+            if not cell.exclusive:
+                group = (cell.builder, str(cell.traversal))
+                groups[group] = groups.get(group, 0) + 1
+        n = max(1, len(addresses))
+        load = [0] * n
+        for group, weight in groups.items():
+            if group in self.cell_bins:
+                load[self.cell_bins[group] % n] += weight
+        for group, weight in sorted(groups.items(), key=lambda item: -item[1]):
+            if group not in self.cell_bins:
+                target = load.index(min(load))
+                self.cell_bins[group] = target
+                load[target] += weight
+        return {g: addresses[self.cell_bins[g] % n] for g in groups}
+
     def drain(self, state: _State) -> None:
         """Wait for every cell in flight and record it."""
         while self.futures:
@@ -389,9 +436,9 @@ class _DaskRunner(_Runner):
             self.busy.setdefault(host, False)
         # Each structure of the counter cells is built once, by a task on its home worker
         # (structures spread over the workers by their cell counts, turned by one worker
-        # from scene to scene), ahead of the cells already waiting there (priority); its
-        # cells go preferably to that worker, and take the structure from the build
-        # wherever they run.
+        # from scene to scene), ahead of the cells already waiting there (priority); the
+        # cells go preferably to their traversal's worker (:meth:`_cell_homes`), and take
+        # the structure from the build wherever they run.
         addresses = [a for host in by_host for a in by_host[host]]
         groups: dict[str, int] = {}
         for cell in cells:
@@ -399,7 +446,8 @@ class _DaskRunner(_Runner):
                 groups[cell.builder] = groups.get(cell.builder, 0) + 1
         turn, self.turn = self.turn, self.turn + 1
         home = {b: addresses[i] for b, i in homes(groups, len(addresses), turn).items()}
-        inputs = _SceneInputs(client, config, mesh, raysets, home)
+        inputs = _SceneInputs(client, config, mesh, raysets, home,
+                              self._cell_homes(cells, addresses))  # fmt: skip
         inputs.mesh_future()
         for name in raysets:
             inputs.rayset_future(name)
