@@ -95,14 +95,27 @@ class Cell:
                 "threads": self.threads}  # fmt: skip
 
 
-def balance(groups: dict[Any, int], n_bins: int) -> dict[Any, int]:
-    """Assign weighted groups to ``n_bins`` bins, heaviest first to the lightest bin (LPT)."""
-    load = [0] * max(1, n_bins)
+def balance(
+    groups: dict[Any, int], n_bins: int, placed: dict[Any, int] | None = None
+) -> dict[Any, int]:
+    """Assign weighted groups to ``n_bins`` bins, heaviest first to the lightest bin (LPT).
+
+    Groups already in ``placed`` keep their bin (modulo ``n_bins``) and count toward
+    its load.
+    """
+    n = max(1, n_bins)
+    placed = placed or {}
+    load = [0] * n
     out = {}
+    for group, weight in groups.items():
+        if group in placed:
+            out[group] = placed[group] % n
+            load[out[group]] += weight
     for group, weight in sorted(groups.items(), key=lambda item: -item[1]):
-        target = load.index(min(load))
-        out[group] = target
-        load[target] += weight
+        if group not in out:
+            target = load.index(min(load))
+            out[group] = target
+            load[target] += weight
     return out
 
 
@@ -320,9 +333,8 @@ def run_cell(
     ``accel``, the cell's structure built elsewhere (:func:`counter_structure`), and
     ``reference``, its ray set's oracle answers computed elsewhere
     (:func:`counter_reference`), are kept for the cells that follow in this process.
-    The record carries ``seconds``,
-    the cell's own wall-clock time, and when (``started``, Unix time) and where
-    (``host``, ``pid``) it ran.
+    The record carries ``seconds``, the cell's own wall-clock time, and when
+    (``started``, Unix time) and where (``host``, ``pid``) it ran.
     """
     if accel is not None:
         _ACCELS.setdefault((mesh.digest(), cell.builder), accel)

@@ -44,6 +44,7 @@ from rayaccel.scene import catalog
 from rayaccel.study.cells import (
     Cell,
     Record,
+    balance,
     cells_by_scene,
     counter_reference,
     counter_structure,
@@ -287,7 +288,6 @@ class _SceneInputs:
             ),
         )  # fmt: skip
 
-
     def reference_future(self, name: str | None) -> Any:
         """Return the task answering ray set ``name``'s sampled rays with the oracle (once)."""
         if not name:
@@ -396,26 +396,17 @@ class _DaskRunner(_Runner):
 
         A traversal's cells stay on one worker for the whole sweep, every scene
         included, so each worker loads the kernels of its own traversals only (a
-        kernel's first call in a process loads it, 50–150 ms). Groups are placed when
-        first seen, heaviest first on the least loaded worker (as
-        :func:`rayaccel.study.cells.balance`).
+        kernel's first call in a process loads it, 50–150 ms). Groups are placed by
+        :func:`rayaccel.study.cells.balance` when first seen.
         """
         groups: dict[tuple[str, str], int] = {}
         for cell in cells:
             if not cell.exclusive:
                 group = (cell.builder, str(cell.traversal))
                 groups[group] = groups.get(group, 0) + 1
-        n = max(1, len(addresses))
-        load = [0] * n
-        for group, weight in groups.items():
-            if group in self.cell_bins:
-                load[self.cell_bins[group] % n] += weight
-        for group, weight in sorted(groups.items(), key=lambda item: -item[1]):
-            if group not in self.cell_bins:
-                target = load.index(min(load))
-                self.cell_bins[group] = target
-                load[target] += weight
-        return {g: addresses[self.cell_bins[g] % n] for g in groups}
+        bins = balance(groups, len(addresses), self.cell_bins)
+        self.cell_bins.update(bins)
+        return {group: addresses[i] for group, i in bins.items()}
 
     def drain(self, state: _State) -> None:
         """Wait for every cell in flight and record it."""
