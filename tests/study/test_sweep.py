@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
 import os
@@ -16,11 +15,11 @@ import pytest
 
 from rayaccel.scene import catalog
 from rayaccel.study import cells as cells_mod
-from rayaccel.study.cells import enumerate_cells, homes
+from rayaccel.study.cells import balance, enumerate_cells, homes
 from rayaccel.study.config import ConfigError, parse_config
 from rayaccel.study.raysets import scene_raysets
 from rayaccel.study.results import ResultsFile, ResultsFormatError, read_results
-from rayaccel.study.sweep import MAX_ATTEMPTS, _DaskRunner, sweep
+from rayaccel.study.sweep import MAX_ATTEMPTS, sweep
 
 TINY = """\
 scenes = ["cornell-box"]
@@ -246,17 +245,18 @@ def test_structure_homes_turn_from_scene_to_scene():
     assert set(homes(groups, 1, 5).values()) == {0}
 
 
-def test_a_traversal_keeps_its_worker_for_the_whole_sweep():
-    """Counter cells go to a worker per (builder, traversal), the same in every scene, so no
-    kernel is loaded on two workers; the groups are spread over both workers."""
-    runner = object.__new__(_DaskRunner)
-    runner.cell_bins = {}
-    cells = enumerate_cells(parse_config(_with('passes = ["counters"]')))
-    other_scene = [dataclasses.replace(cell, scene="teapot") for cell in cells]
-    first = runner._cell_homes(cells, ["a", "b"])
-    assert runner._cell_homes(other_scene, ["a", "b"]) == first
-    assert set(first.values()) == {"a", "b"}
-    assert set(runner._cell_homes(cells, ["a"]).values()) == {"a"}
+def test_balance_keeps_the_groups_already_placed():
+    """The sweep places each (builder, traversal)'s counter cells once for the whole sweep
+    (so no kernel is loaded on two workers): groups already placed keep their bin and
+    count toward its load, new ones go to the lightest bin."""
+    groups = {("bvh", "stack"): 8, ("bvh", "wide"): 8, ("kd", "stack"): 6, ("grid", "dda"): 4}
+    first = balance(groups, 2)
+    assert first == {("bvh", "stack"): 0, ("bvh", "wide"): 1, ("kd", "stack"): 0,
+                     ("grid", "dda"): 1}  # fmt: skip
+    later = balance({**groups, ("kd", "ropes"): 5}, 2, first)
+    assert {g: later[g] for g in groups} == first
+    assert later[("kd", "ropes")] == 1  # bin 0 held 14, bin 1 held 12
+    assert set(balance(groups, 1, first).values()) == {0}
 
 
 def test_a_counter_cell_uses_the_structure_and_answers_it_is_handed(finished, monkeypatch):
