@@ -15,7 +15,15 @@ import rayaccel
 import reference
 from rayaccel._jit import cpu_kernel
 from rayaccel.bvh.layouts.bvh2 import MAX_DEPTH
-from rayaccel.bvh.layouts.wide import WIDTHS, count_column, ref_column, wide_layout
+from rayaccel.bvh.layouts.wide import (
+    C_NODE,
+    C_PRIM,
+    MAX_LEAF,
+    WIDTHS,
+    count_column,
+    ref_column,
+    wide_layout,
+)
 from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb import ray_box_entry
@@ -99,10 +107,10 @@ def test_vector_slab_test_matches_the_scalar_one_lane_by_lane(width):
 
 @pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("scene", ["teapot", "teapot-in-stadium"])
-def test_collapsed_rows_reproduce_the_binary_tree(scene, width):
+def test_greedy_rows_reproduce_the_binary_tree(scene, width):
     accel = rayaccel.build(rayaccel.scenes.get(scene))
     packed = packed_layout(accel.structure, accel.mesh, None)
-    wide = wide_layout(packed, width)
+    wide = wide_layout(packed, width, "greedy")
     rows, refs = wide.rows, wide.rows.view(np.int32)
     count = refs[:, count_column(width)]
     assert ((count >= 2) & (count <= width)).all()
@@ -127,6 +135,93 @@ def test_collapsed_rows_reproduce_the_binary_tree(scene, width):
     assert sorted(leaves) == sorted(binary_box)
     assert not packed.has_rows
     assert sorted(inner) == list(range(1, wide.n_rows))
+
+
+def _half_area(lo, hi):
+    e = np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
+    return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+
+
+def _lanes(wide, w):
+    """Yield ``(reference, lo, hi)`` of every child of row ``w``."""
+    width = wide.width
+    refs = wide.rows.view(np.int32)
+    for j in range(refs[w, count_column(width)]):
+        lo = [wide.rows[w, 2 * a * width + j] for a in range(3)]
+        hi = [wide.rows[w, (2 * a + 1) * width + j] for a in range(3)]
+        yield int(refs[w, ref_column(width) + j]), lo, hi
+
+
+def _wide_sah(wide, root_lo, root_hi):
+    """The SAH cost the collapse minimises: C_NODE per row's box, C_PRIM per leaf triangle."""
+    cost = C_NODE * _half_area(root_lo, root_hi)
+    for w in range(wide.n_rows):
+        for ref, lo, hi in _lanes(wide, w):
+            if ref >= 0:
+                cost += C_NODE * _half_area(lo, hi)
+            else:
+                cost += C_PRIM * _half_area(lo, hi) * int(wide.leaf_count[~ref])
+    return cost
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+@pytest.mark.parametrize("scene", ["teapot", "teapot-in-stadium", "cornell-box"])
+def test_sah_collapse_covers_every_triangle_once_and_costs_no_more_than_greedy(scene, width):
+    accel = rayaccel.build(rayaccel.scenes.get(scene))
+    tree = accel.structure
+    packed = packed_layout(tree, accel.mesh, None)
+    wide, greedy = wide_layout(packed, width), wide_layout(packed, width, "greedy")
+    count = wide.rows.view(np.int32)[:, count_column(width)]
+    assert ((count >= 2) & (count <= width)).all()
+    corners = accel.mesh.vertices[accel.mesh.faces[tree.prim_index]]  # in triangle-row order
+    inner, leaves = [], []
+    for w in range(wide.n_rows):
+        for ref, lo, hi in _lanes(wide, w):
+            if ref >= 0:
+                inner.append(ref)
+                for _, child_lo, child_hi in _lanes(wide, ref):  # children inside the box
+                    assert (np.array(child_lo) >= lo).all()
+                    assert (np.array(child_hi) <= hi).all()
+            else:
+                leaves.append(~ref)
+                first, n = int(wide.leaf_first[~ref]), int(wide.leaf_count[~ref])
+                rows = corners[first : first + n].reshape(-1, 3)
+                assert (rows.min(axis=0) >= lo).all()
+                assert (rows.max(axis=0) <= hi).all()
+    assert sorted(inner) == list(range(1, wide.n_rows))
+    assert sorted(leaves) == list(range(wide.leaf_first.shape[0]))
+    # The leaves' runs of triangle rows tile the rows exactly, each within the leaf limit
+    # unless it is a binary leaf (which cannot be split).
+    order = np.argsort(wide.leaf_first)
+    starts, sizes = wide.leaf_first[order], wide.leaf_count[order]
+    assert starts[0] == 0
+    assert np.array_equal(starts[1:], (starts + sizes)[:-1])
+    assert starts[-1] + sizes[-1] == tree.n_refs
+    is_leaf = tree.node_count > 0
+    binary = set(zip(tree.node_first[is_leaf], tree.node_count[is_leaf], strict=True))
+    big = sizes > MAX_LEAF
+    assert all((int(f), int(n)) in binary for f, n in zip(starts[big], sizes[big], strict=True))
+    # The greedy collapse is one of the collapses the SAH one chose among.
+    root_lo, root_hi = tree.node_lo[0], tree.node_hi[0]
+    assert _wide_sah(wide, root_lo, root_hi) <= _wide_sah(greedy, root_lo, root_hi) * (1 + 1e-9)
+    assert wide.n_rows < greedy.n_rows
+    assert wide.nbytes() == wide.rows.nbytes + wide.leaf_first.nbytes + wide.leaf_count.nbytes
+    assert greedy.nbytes() == greedy.rows.nbytes
+
+
+def test_a_few_triangles_cheapest_as_one_leaf_make_no_rows():
+    mesh = reference.grid_plane(1)  # two triangles, split into two leaves below
+    accel = rayaccel.build(mesh, "bvh2.binned_sah", max_leaf_size=1)
+    assert accel.structure.n_leaves == 2
+    wide = wide_layout(packed_layout(accel.structure, mesh, None), 8)
+    assert wide.root_ref[0] < 0
+    assert wide.n_rows == 0
+    assert (int(wide.leaf_first[0]), int(wide.leaf_count[0])) == (0, 2)
+    rays = reference.mixed_rays(mesh, n=300)
+    oracle = reference.oracle(mesh, rays)
+    assert accel.trace(rays, traversal="bvh2.wide").t.tobytes() == oracle.t.tobytes()
+    occluded = accel.occluded(rays.origin, rays.direction, rays.tmin, rays.tmax)
+    assert np.array_equal(occluded, oracle.prim >= 0)
 
 
 @pytest.mark.parametrize("width", WIDTHS)
@@ -171,6 +266,13 @@ def test_counters_bytes_and_options():
         accel.intersect(rays.origin, rays.direction, traversal="bvh2.wide", width=6)
     with pytest.raises(InvalidInputError, match="any_order"):
         accel.occluded(rays.origin, rays.direction, traversal="bvh2.wide", any_order="far")
+    with pytest.raises(InvalidInputError, match="collapse"):
+        accel.intersect(rays.origin, rays.direction, traversal="bvh2.wide", collapse="best")
+    # The greedy rows find the same closest hits, with more steps.
+    greedy = accel.trace(rays, traversal="bvh2.wide", stats=True, collapse="greedy")
+    assert greedy.t.tobytes() == accel.trace(rays, traversal="bvh2.wide").t.tobytes()
+    assert greedy.stats["nodes"].sum() > eight["nodes"].sum()
+    assert accel.derived("bvh2.wide8.greedy") is not None
     # The lane order changes only any-hit queries: closest hits keep the nearest-first walk.
     lanes = accel.trace(rays, traversal="bvh2.wide", stats=True, any_order="lanes").stats
     assert all(np.array_equal(lanes[k], eight[k]) for k in eight)
@@ -180,7 +282,7 @@ def test_counters_bytes_and_options():
     wide4, wide8 = accel.derived("bvh2.wide4"), accel.derived("bvh2.wide8")
     assert wide4 is not None
     assert wide8 is not None
-    assert wide4.nbytes() == wide4.rows.nbytes
+    assert wide4.nbytes() == wide4.rows.nbytes + 2 * wide4.leaf_first.nbytes
     info = accel.info()
     assert info["bytes"] >= accel.structure.nbytes() + wide4.nbytes() + wide8.nbytes()
 

@@ -4,8 +4,9 @@ Wald, Benthin, Boulos 2008, "Getting Rid of Packets — Efficient SIMD Single-Ra
 Traversal using Multi-branching BVHs"; Dammertz, Hanika, Keller 2008, "Shallow
 Bounding Volume Hierarchies for Fast SIMD Ray Tracing of Incoherent Rays". The
 binary tree any ``bvh2`` builder made is collapsed once per accel into rows of
-``width`` = 8 (default) or 4 children (:mod:`rayaccel.bvh.layouts.wide`, cached as
-``"bvh2.wide4"`` / ``"bvh2.wide8"``); a traversal step tests the child boxes of one
+``width`` = 8 (default) or 4 children (:mod:`rayaccel.bvh.layouts.wide`, the SAH-optimal
+collapse cached as ``"bvh2.wide4"`` / ``"bvh2.wide8"``, the greedy one as
+``"bvh2.wide8.greedy"``); a traversal step tests the child boxes of one
 row as the lanes of one vector slab test (:mod:`rayaccel.kernels.aabb_wide`), then
 visits the hit children nearest first: the nearest becomes the next node, the
 others are pushed farthest first with their entry distances. As in ``bvh2.stack``
@@ -44,6 +45,7 @@ from rayaccel.bvh.layouts.bvh2 import (
     Bvh2,
 )
 from rayaccel.bvh.layouts.wide import (
+    COLLAPSES,
     WIDTHS,
     WideBvh,
     count_column,
@@ -82,14 +84,20 @@ class WideOptions:
         ``"lanes"``, the row's order, unsorted (an occluder anywhere on the segment ends
         the walk, so the sort buys nothing certain; Embree's any-hit traversal does not
         sort either). Closest-hit queries always visit nearest first.
+    collapse : {"sah", "greedy"}
+        How the binary tree becomes rows (:mod:`rayaccel.bvh.layouts.wide`): the
+        SAH-optimal collapse (Ylitie et al. 2017), or Wald et al. 2008's greedy one.
     """
 
     width: int = 8
     any_order: str = "nearest"
+    collapse: str = "sah"
 
     def __post_init__(self) -> None:
         if self.width not in WIDTHS:
             raise InvalidInputError(f"width: expected one of {WIDTHS}, got {self.width}")
+        if self.collapse not in COLLAPSES:
+            raise InvalidInputError(f"collapse: expected one of {COLLAPSES}, got {self.collapse!r}")
         if self.any_order not in ANY_ORDERS:
             raise InvalidInputError(
                 f"any_order: expected one of {ANY_ORDERS}, got {self.any_order!r}"
@@ -263,11 +271,20 @@ def wide_kernels(width: int, any_order: str) -> Any:
 
 
 def wide_bvh(
-    bvh: Bvh2, mesh: TriangleMesh, cache: dict[str, Any] | None, width: int = 8
+    bvh: Bvh2,
+    mesh: TriangleMesh,
+    cache: dict[str, Any] | None,
+    width: int = 8,
+    collapse: str = "sah",
 ) -> WideBvh:
-    """Return the ``width``-wide layout of ``bvh``, memoised in ``cache`` when given."""
+    """Return the ``width``-wide layout of ``bvh``, memoised in ``cache`` when given.
+
+    The SAH collapse is cached as ``bvh2.wide{width}``, the greedy one with ``.greedy``
+    added.
+    """
+    name = f"bvh2.wide{width}" + ("" if collapse == "sah" else f".{collapse}")
     return memoised_layout(
-        cache, f"bvh2.wide{width}", lambda: wide_layout(packed_layout(bvh, mesh, cache), width)
+        cache, name, lambda: wide_layout(packed_layout(bvh, mesh, cache), width, collapse)
     )
 
 
@@ -279,12 +296,13 @@ def trace_bvh2_wide(
 
     Trace rays through the wide form of a binary BVH (see the module docstring).
 
-    The derived wide rows are cached under ``"bvh2.wide4"`` or ``"bvh2.wide8"``.
+    The derived wide rows are cached under ``"bvh2.wide4"`` or ``"bvh2.wide8"`` (the
+    greedy collapse: ``"bvh2.wide4.greedy"``, ``"bvh2.wide8.greedy"``).
 
     References
     ----------
     Wald, Benthin, Boulos 2008, Getting Rid of Packets;
     Dammertz, Hanika, Keller 2008, Shallow Bounding Volume Hierarchies.
     """
-    wide = wide_bvh(bvh, mesh, cache, options.width)
+    wide = wide_bvh(bvh, mesh, cache, options.width, options.collapse)
     return TracePlan(wide_kernels(options.width, options.any_order), wide.arrays())
