@@ -42,11 +42,14 @@ box ``lo = +inf, hi = -inf``, which every ray misses, so the box test needs no l
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
+import numba
 import numpy as np
+from numba import prange
 
 from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, PackedBvh2, aligned_zeros, row_arrays
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
@@ -62,6 +65,8 @@ COLLAPSES = ("sah", "greedy")
 C_NODE = 1.0
 C_PRIM = 0.3
 MAX_LEAF = 8
+#: The SAH collapse costs the subtrees this many levels below the root in parallel.
+PLAN_SPLIT_DEPTH = 6
 
 
 def row_floats(width: int) -> int:
@@ -192,9 +197,9 @@ def _greedy_kernel(bvh, rows, width):
     return n_rows
 
 
-@cpu_kernel()
-def _sah_plan_kernel(bvh, width, depth, c_node, c_prim, max_leaf, plan, sub_first, sub_count):
-    """Cost every binary node's best collapse bottom-up (Ylitie et al. 2017 §3.1).
+def sah_costs_py(bvh, root, width, c_node, c_prim, max_leaf, plan, sub_first, sub_count,
+                 is_stop, stops, stop_cost, stop_first, stop_end, stop_count, depth):  # fmt: skip
+    """Cost the collapse of the subtree at ``root`` bottom-up (Ylitie et al. 2017 §3.1).
 
     A post-order walk keeps the costs ``C(n, 1..width)`` of the pending subtrees on a
     stack (at most ``depth + 2`` of them). Per node it records in ``plan[n, 0]`` how
@@ -202,7 +207,10 @@ def _sah_plan_kernel(bvh, width, depth, c_node, c_prim, max_leaf, plan, sub_firs
     ``n`` becomes a leaf), in ``plan[n, j]`` (``j >= 1``) the left child's share of
     ``j + 1`` slots (0: ``j`` slots do as well), and the run of triangle rows the
     subtree covers in ``sub_first``/``sub_count``. A leaf is allowed for at most
-    ``max_leaf`` triangles whose rows are contiguous (always, for a binary leaf).
+    ``max_leaf`` triangles whose rows are contiguous (always, for a binary leaf). A
+    node below ``root`` with ``is_stop`` set is not entered: its costs and run are
+    ``stop_cost``/``stop_first``/``stop_end``/``stop_count`` at its index in the sorted
+    ``stops``. Returns the root's ``(costs, first row, end of rows, triangles)``.
     """
     cap = depth + 2
     todo = np.empty(2 * cap + 2, dtype=np.int32)
@@ -211,12 +219,22 @@ def _sah_plan_kernel(bvh, width, depth, c_node, c_prim, max_leaf, plan, sub_firs
     end = np.empty(cap, dtype=np.int64)
     count = np.empty(cap, dtype=np.int64)
     best_of = np.empty(width, dtype=np.float64)
-    todo[0] = 0
+    todo[0] = root
     t = 1
     v = 0
     while t > 0:
         t -= 1
         x = todo[t]
+        if x >= 0 and x != root and is_stop[x]:
+            # Costed before: push its values.
+            i = np.searchsorted(stops, x)
+            for j in range(width):
+                cost[v, j] = stop_cost[i, j]
+            first[v] = stop_first[i]
+            end[v] = stop_end[i]
+            count[v] = stop_count[i]
+            v += 1
+            continue
         if x >= 0 and bvh.node_count[x] == 0:
             # An inner node: its children first (left on top), then the node again.
             todo[t] = ~x
@@ -281,6 +299,57 @@ def _sah_plan_kernel(bvh, width, depth, c_node, c_prim, max_leaf, plan, sub_firs
         sub_first[node] = lo
         sub_count[node] = n
         v -= 1
+    return cost[0], first[0], end[0], count[0]
+
+
+sah_costs = cpu_inline(sah_costs_py)
+
+
+@cpu_kernel(parallel=True)
+def _sah_plan_kernel(
+    bvh, width, depth, c_node, c_prim, max_leaf, stops, n_threads, plan, sub_first, sub_count
+):  # fmt: skip
+    """Fill the plan of :func:`sah_costs_py` for the whole tree.
+
+    The subtrees at ``stops`` (sorted) are costed in parallel, ``n_threads`` workers
+    taking them one at a time, then the levels above them serially.
+    """
+    m = stops.shape[0]
+    stop_cost = np.empty((m, width), dtype=np.float64)
+    stop_first = np.empty(m, dtype=np.int64)
+    stop_end = np.empty(m, dtype=np.int64)
+    stop_count = np.empty(m, dtype=np.int64)
+    is_stop = np.zeros(bvh.node_count.shape[0], dtype=np.uint8)
+    for i in range(m):
+        is_stop[stops[i]] = 1
+    counter = new_counter()
+    for _worker in prange(worker_count(m, n_threads, True)):
+        while True:
+            i = next_item(counter, m)
+            if i < 0:
+                break
+            c, f, e, n = sah_costs(
+                bvh, stops[i], width, c_node, c_prim, max_leaf, plan, sub_first, sub_count,
+                is_stop, stops, stop_cost, stop_first, stop_end, stop_count, depth,
+            )  # fmt: skip
+            for j in range(width):
+                stop_cost[i, j] = c[j]
+            stop_first[i] = f
+            stop_end[i] = e
+            stop_count[i] = n
+    sah_costs(
+        bvh, 0, width, c_node, c_prim, max_leaf, plan, sub_first, sub_count,
+        is_stop, stops, stop_cost, stop_first, stop_end, stop_count, depth,
+    )  # fmt: skip
+
+
+def _inner_nodes_at_depth(tree: Any, depth: int) -> IntArray:
+    """Return the sorted inner nodes ``depth`` levels below the root (the plan's subtrees)."""
+    level = np.zeros(1, dtype=np.int64)
+    for _ in range(depth):
+        inner = level[tree.node_count[level] == 0]
+        level = np.concatenate([tree.node_first[inner], tree.node_first[inner] + 1])
+    return np.sort(level[tree.node_count[level] == 0]).astype(INDEX)
 
 
 @cpu_kernel()
@@ -372,8 +441,10 @@ def wide_layout(packed: PackedBvh2, width: int = 8, collapse: str = "sah") -> Wi
     sub_first = np.empty(tree.n_nodes, dtype=INDEX)
     sub_count = np.empty(tree.n_nodes, dtype=INDEX)
     _sah_plan_kernel(
-        tree.arrays(), width, tree.depth(), C_NODE, C_PRIM, MAX_LEAF, plan, sub_first, sub_count
-    )
+        tree.arrays(), width, tree.depth(), C_NODE, C_PRIM, MAX_LEAF,
+        _inner_nodes_at_depth(tree, PLAN_SPLIT_DEPTH), numba.get_num_threads(), plan,
+        sub_first, sub_count,
+    )  # fmt: skip
     if plan[0, 0] == 0:
         # A few triangles that are cheapest as one leaf: no rows, as for a single leaf.
         root_ref = np.array([-1], dtype=INDEX)
