@@ -119,6 +119,7 @@ def tour() -> None:
     few = rays.subset(slice(0, 16))
     accel.trace(few, traversal="bvh2.wide", width=4)
     accel.trace(few, traversal="bvh2.wide", any_order="lanes", query="any")
+    accel.trace(few, traversal="bvh2.wide", collapse="greedy")
     accel.trace(few, traversal="bvh2.restart_trail", short_stack=3)
     accel.info(epo=True, lcv_rays=few)
     state = accel.traversal_state(few.origin, few.direction)

@@ -60,8 +60,8 @@ MAX_WIDTH = 8
 #: The collapses of the binary tree (see the module docstring).
 COLLAPSES = ("sah", "greedy")
 #: The SAH collapse's costs of a row visit and of a triangle test, and its largest leaf
-#: (Ylitie et al. 2017 use 1, 0.3 and 3 on GPUs; 0.2–0.5 and leaves of 8 or 16 made
-#: no measurable difference here, see docs/performance.md).
+#: (Ylitie et al. 2017 use 1, 0.3 and 3 on GPUs; triangle costs of 0.1–1.0 and leaves
+#: of 2–16 measured no better here, see docs/performance.md).
 C_NODE = 1.0
 C_PRIM = 0.3
 MAX_LEAF = 8
