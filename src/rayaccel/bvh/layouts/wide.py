@@ -302,7 +302,9 @@ def sah_costs_py(bvh, root, width, c_node, c_prim, max_leaf, plan, sub_first, su
     return cost[0], first[0], end[0], count[0]
 
 
-sah_costs = cpu_inline(sah_costs_py)
+#: Compiled once as a function of its own (the plan kernel calls it twice; inlined, the
+#: parallel kernel took 10 s to compile).
+sah_costs = cpu_kernel()(sah_costs_py)
 
 
 @cpu_kernel(parallel=True)
