@@ -5,8 +5,8 @@ Traversal using Multi-branching BVHs"; Dammertz, Hanika, Keller 2008, "Shallow
 Bounding Volume Hierarchies for Fast SIMD Ray Tracing of Incoherent Rays". The
 binary tree any ``bvh2`` builder made is collapsed once per accel into rows of
 ``width`` = 8 (default) or 4 children (:mod:`rayaccel.bvh.layouts.wide`, the SAH-optimal
-collapse cached as ``"bvh2.wide4"`` / ``"bvh2.wide8"``, the greedy one as
-``"bvh2.wide8.greedy"``); a traversal step tests the child boxes of one
+collapse cached as ``"bvh2.wide4"`` / ``"bvh2.wide8"``, the greedy one with ``.greedy``
+added); a traversal step tests the child boxes of one
 row as the lanes of one vector slab test (:mod:`rayaccel.kernels.aabb_wide`), then
 visits the hit children nearest first: the nearest becomes the next node, the
 others are pushed farthest first with their entry distances. As in ``bvh2.stack``
