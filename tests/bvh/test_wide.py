@@ -28,6 +28,7 @@ from rayaccel.bvh.traverse.stack import packed_layout
 from rayaccel.errors import InvalidInputError
 from rayaccel.kernels.aabb import ray_box_entry
 from rayaccel.kernels.aabb_wide import slab_test2, slab_test4, slab_test8
+from rayaccel.kernels.sah import box_half_area_py
 from rayaccel.rays.batch import RayBatch
 
 
@@ -137,11 +138,6 @@ def test_greedy_rows_reproduce_the_binary_tree(scene, width):
     assert sorted(inner) == list(range(1, wide.n_rows))
 
 
-def _half_area(lo, hi):
-    e = np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
-    return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
-
-
 def _lanes(wide, w):
     """Yield ``(reference, lo, hi)`` of every child of row ``w``."""
     width = wide.width
@@ -154,13 +150,13 @@ def _lanes(wide, w):
 
 def _wide_sah(wide, root_lo, root_hi):
     """The SAH cost the collapse minimises: C_NODE per row's box, C_PRIM per leaf triangle."""
-    cost = C_NODE * _half_area(root_lo, root_hi)
+    cost = C_NODE * box_half_area_py(*root_lo, *root_hi)
     for w in range(wide.n_rows):
         for ref, lo, hi in _lanes(wide, w):
             if ref >= 0:
-                cost += C_NODE * _half_area(lo, hi)
+                cost += C_NODE * box_half_area_py(*lo, *hi)
             else:
-                cost += C_PRIM * _half_area(lo, hi) * int(wide.leaf_count[~ref])
+                cost += C_PRIM * box_half_area_py(*lo, *hi) * int(wide.leaf_count[~ref])
     return cost
 
 

@@ -53,6 +53,7 @@ from rayaccel._work import new_counter, next_item, worker_count
 from rayaccel.bvh.layouts.bvh2 import CACHE_LINE, PackedBvh2, aligned_zeros, row_arrays
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError
+from rayaccel.kernels.sah import node_half_area
 
 #: Children per wide node that the layout and the traversal support.
 WIDTHS = (4, 8)
@@ -243,10 +244,7 @@ def sah_costs_py(bvh, root, width, c_node, c_prim, max_leaf, plan, sub_first, su
             t += 3
             continue
         node = x if x >= 0 else ~x
-        ex = np.float64(bvh.node_hi[node, 0]) - bvh.node_lo[node, 0]
-        ey = np.float64(bvh.node_hi[node, 1]) - bvh.node_lo[node, 1]
-        ez = np.float64(bvh.node_hi[node, 2]) - bvh.node_lo[node, 2]
-        area = ex * ey + ey * ez + ez * ex
+        area = node_half_area(bvh.node_lo, bvh.node_hi, node)
         for j in range(width):
             plan[node, j] = 0
         if x >= 0:
