@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -399,11 +399,7 @@ class _DaskRunner(_Runner):
         kernel's first call in a process loads it, 50–150 ms). Groups are placed by
         :func:`rayaccel.study.cells.balance` when first seen.
         """
-        groups: dict[tuple[str, str], int] = {}
-        for cell in cells:
-            if not cell.exclusive:
-                group = (cell.builder, str(cell.traversal))
-                groups[group] = groups.get(group, 0) + 1
+        groups = Counter((c.builder, str(c.traversal)) for c in cells if not c.exclusive)
         bins = balance(groups, len(addresses), self.cell_bins)
         self.cell_bins.update(bins)
         return {group: addresses[i] for group, i in bins.items()}
@@ -431,10 +427,7 @@ class _DaskRunner(_Runner):
         # cells go preferably to their traversal's worker (:meth:`_cell_homes`), and take
         # the structure from the build wherever they run.
         addresses = [a for host in by_host for a in by_host[host]]
-        groups: dict[str, int] = {}
-        for cell in cells:
-            if not cell.exclusive:
-                groups[cell.builder] = groups.get(cell.builder, 0) + 1
+        groups = Counter(cell.builder for cell in cells if not cell.exclusive)
         turn, self.turn = self.turn, self.turn + 1
         home = {b: addresses[i] for b, i in homes(groups, len(addresses), turn).items()}
         inputs = _SceneInputs(client, config, mesh, raysets, home,
