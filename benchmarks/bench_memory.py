@@ -92,11 +92,13 @@ def measure(system: str, scene: str, key: str, traversal: str | None) -> dict[st
         built = rayaccel.build(mesh, key)
         for query, rays in queries:
             built.trace(rays, query=query, traversal=traversal)
+    _trim()
+    growth = _rss() - before
+    if system != "open3d":
+        # Read after the RSS: info() recomputes released boxes for the SAH it reports.
         info = built.info()
         record["info_bytes"] = info["bytes"]
         record["layouts"] = {name: entry["bytes"] for name, entry in info["layouts"].items()}
-    _trim()
-    growth = _rss() - before
     record["rss_growth_mb"] = round(growth / 1e6, 1)
     record["bytes_per_tri"] = round(growth / mesh.n_triangles, 1)
     return record

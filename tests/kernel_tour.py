@@ -121,6 +121,10 @@ def tour() -> None:
     accel.trace(few, traversal="bvh2.wide", any_order="lanes", query="any")
     accel.trace(few, traversal="bvh2.wide", collapse="greedy")
     accel.trace(few, traversal="bvh2.restart_trail", short_stack=3)
+    # The default queries release a tree's boxes; a named traversal restores them.
+    fresh = rayaccel.build(soup, "bvh2.binned_sah")
+    fresh.trace(rays)
+    fresh.trace(few, traversal="bvh2.stack")
     accel.info(epo=True, lcv_rays=few)
     state = accel.traversal_state(few.origin, few.direction)
     while (state.next_hits().prim >= 0).any():

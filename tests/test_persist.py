@@ -122,7 +122,7 @@ def test_pickle_and_copies(sphere, rays):
     assert accel.derived("bvh2.packed") is not None
     clone = pickle.loads(pickle.dumps(accel))
     assert clone.derived("bvh2.packed") is None  # derived layouts are not shipped
-    assert isinstance(clone._lock, type(threading.Lock()))
+    assert isinstance(clone._lock, type(threading.RLock()))
     assert clone._lock is not accel._lock
     assert_same_structure(accel.structure, clone.structure)
     reference.assert_hits_identical(before, clone.intersect(rays.origin, rays.direction))

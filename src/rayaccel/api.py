@@ -31,6 +31,8 @@ import numpy as np
 from rayaccel import chunked, config, persist, registry
 from rayaccel import refit as refitting
 from rayaccel.bvh import geometry
+from rayaccel.bvh.builders.refit_vertices import refit_bvh2
+from rayaccel.bvh.layouts import released_bounds
 from rayaccel.bvh.layouts.bvh2 import Bvh2
 from rayaccel.bvh.precision import conservative_bvh2
 from rayaccel.counters import counters_to_dict, empty_counters
@@ -91,7 +93,10 @@ class Accel:
     ):
         self.key = key
         self.mesh = mesh
-        self.structure = structure
+        self._lock = threading.RLock()
+        self._structure: Any = structure
+        #: The BVH boxes: ``"held"`` (may be released), ``"released"`` or ``"kept"``.
+        self._boxes = "held"
         self.options = options
         self.build_ms = build_ms
         self.step_ms = dict(step_ms or {key: build_ms})
@@ -99,7 +104,6 @@ class Accel:
         self._cache: dict[str, Any] = {}
         #: The mesh and its box's diagonal, the scale of a batch's coherence.
         self._scene_diagonal: tuple[TriangleMesh, float] | None = None
-        self._lock = threading.Lock()
         #: Options of each build step by step name (set by :func:`build`), for rebuilds.
         self.step_options: dict[str, Any] = {}
         #: SAH cost at build time; computed on first need (:meth:`refit`, :meth:`save`).
@@ -111,6 +115,55 @@ class Accel:
 
     def __repr__(self) -> str:
         return f"Accel({self.key!r}, {self.mesh!r})"
+
+    # -- the canonical structure, and its boxes released after the default queries -------------
+
+    @property
+    def structure(self) -> Any:
+        """The canonical structure the builder made (its BVH boxes restored if released)."""
+        if self._boxes == "released":
+            with self._lock:
+                if self._boxes == "released":
+                    self._structure = released_bounds.with_boxes(
+                        self._structure, self.mesh.vertices, self.mesh.faces, self._cache
+                    )
+                    # Whoever read them once may read them again: no second release.
+                    self._boxes = "kept"
+        return self._structure
+
+    @structure.setter
+    def structure(self, structure: Any) -> None:
+        with self._lock:
+            self._structure = structure
+            self._boxes = "held"
+
+    def _full_structure(self) -> Any:
+        """Return the canonical structure with its boxes (recomputed, not kept, if released)."""
+        with self._lock:
+            if self._boxes != "released":
+                return self._structure
+            return refit_bvh2(self._structure, self.mesh.vertices, self.mesh.faces)
+
+    def _release_boxes(self) -> None:
+        """Drop the BVH's node boxes once the cache holds only the default queries' layouts.
+
+        See :mod:`rayaccel.bvh.layouts.released_bounds`: the boxes go only when a refit
+        gives them back exactly (checked once), and come back, for good, on the first
+        use that reads them.
+        """
+        with self._lock:
+            if self._boxes != "held" or not released_bounds.releasable(self._cache):
+                return
+            tree, mesh = self._structure, self.mesh
+            if (
+                not isinstance(tree, Bvh2)
+                or mesh.precision != "float32"
+                or not released_bounds.boxes_are_unions(tree, mesh.vertices, mesh.faces)
+            ):
+                self._boxes = "kept"
+                return
+            self._structure = released_bounds.without_boxes(tree, self._cache)
+            self._boxes = "released"
 
     @property
     def precision(self) -> str:
@@ -189,15 +242,21 @@ class Accel:
                     stats=counters_to_dict(empty_counters(0, True)),
                 )
             return empty
-        with self._lock:
-            # One consistent snapshot: refit() swaps the three together.
-            cache, structure, mesh = self._cache, self.structure, self.mesh
         if device == "cuda":
             return self._trace_cuda(key, variant, rays, query, stats, opts)
+        # The default queries read derived layouts only: their boxes may stay released.
+        default = traversal is None and not options and key in released_bounds.TRAVERSALS
+        with self._lock:
+            # One consistent snapshot: refit() swaps the three together.
+            structure = self._structure if default else self.structure
+            cache, mesh = self._cache, self.mesh
         rays = rays.astype(mesh.precision)
-        return variant.func(  # type: ignore[no-any-return]
+        hits: HitBatch = variant.func(
             structure, mesh, rays, query=query, stats=stats, options=opts, cache=cache
         )
+        if default and self._boxes == "held":
+            self._release_boxes()
+        return hits
 
     def query_traversal(self, rays: RayBatch) -> str:
         """Return the traversal :meth:`trace` uses for ``rays`` when it is given none.
@@ -537,7 +596,7 @@ class Accel:
         InvalidInputError
             ``epo`` or ``lcv_rays`` asked of a structure without quality metrics.
         """
-        s: Structure = self.structure
+        s: Structure = self._full_structure()
         info: dict[str, Any] = {
             "builder": self.key,
             "structure": self.structure_name,
@@ -576,9 +635,13 @@ class Accel:
         }
         refit_bytes = sum(int(v.nbytes()) for v in tuple(self._refit_memo.values()))
         info["bytes"] = (
-            int(s.nbytes()) + sum(entry["bytes"] for entry in layouts.values()) + refit_bytes
+            int(self._structure.nbytes())
+            + sum(entry["bytes"] for entry in layouts.values())
+            + refit_bytes
         )
         info["layouts"] = layouts
+        if isinstance(s, Bvh2):
+            info["boxes_released"] = self._boxes == "released"
         if refit_bytes:
             info["refit_bytes"] = refit_bytes
         if self.last_refit is not None:
@@ -696,16 +759,20 @@ class Accel:
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickle everything but the lock and the derived layouts (derived again on use)."""
+        released = self._boxes == "released"
+        self.structure  # noqa: B018 (restores released boxes: the copy needs them)
         state = self.__dict__.copy()
         state.pop("_lock", None)
         state["_cache"] = {}
+        if released:
+            state["_boxes"] = "held"  # the copy may release them after its own default queries
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         """Restore a pickled (or copied) accel with a lock and an empty layout cache of its own."""
         self.__dict__.update(state)
         self._cache = {}
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
 
 
 #: Structures whose builders accept float64 meshes: BVH boxes widened by one float32 ulp

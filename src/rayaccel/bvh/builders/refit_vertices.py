@@ -260,8 +260,8 @@ def refit_bvh2(
     """
     if topology is None:
         topology = refit_topology(bvh, faces)
-    lo = np.empty_like(bvh.node_lo, dtype=REAL)
-    hi = np.empty_like(bvh.node_hi, dtype=REAL)
+    lo = np.empty((bvh.n_nodes, 3), dtype=REAL)
+    hi = np.empty((bvh.n_nodes, 3), dtype=REAL)
     with parallel_section():
         _refit_kernel(bvh.n_nodes >= PARALLEL_MIN_NODES)(
             _read_only(bvh.node_first, INDEX),

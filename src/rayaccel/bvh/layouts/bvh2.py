@@ -115,8 +115,13 @@ class Bvh2:
         return int(self.depths().max())
 
     def nbytes(self) -> int:
-        """Return the canonical size in bytes (nodes and references)."""
-        return self.n_nodes * NODE_BYTES + self.n_refs * REF_BYTES
+        """Return the canonical size in bytes held (nodes and references).
+
+        ``n_nodes * NODE_BYTES + n_refs * REF_BYTES``, less the boxes when an accel has
+        released them (:mod:`rayaccel.bvh.layouts.released_bounds`).
+        """
+        arrays = (self.node_lo, self.node_hi, self.node_first, self.node_count, self.prim_index)
+        return int(sum(a.nbytes for a in arrays))
 
     def sah_cost(self, inner_cost: float = 1.2, prim_cost: float = 1.0) -> float:
         """Return the SAH cost of the tree (MacDonald & Booth 1990; Aila et al. 2013).
