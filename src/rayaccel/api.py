@@ -120,15 +120,18 @@ class Accel:
 
     @property
     def structure(self) -> Any:
-        """The canonical structure the builder made (its BVH boxes restored if released)."""
-        if self._boxes == "released":
+        """The canonical structure the builder made (its BVH boxes restored if released).
+
+        Whoever reads it may derive layouts from the tree's boxes while a default query
+        finishes, so from the first read on the boxes are kept for good.
+        """
+        if self._boxes != "kept":
             with self._lock:
                 if self._boxes == "released":
                     self._structure = released_bounds.with_boxes(
                         self._structure, self.mesh.vertices, self.mesh.faces, self._cache
                     )
-                    # Whoever read them once may read them again: no second release.
-                    self._boxes = "kept"
+                self._boxes = "kept"
         return self._structure
 
     @structure.setter
@@ -759,13 +762,12 @@ class Accel:
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickle everything but the lock and the derived layouts (derived again on use)."""
-        released = self._boxes == "released"
-        self.structure  # noqa: B018 (restores released boxes: the copy needs them)
-        state = self.__dict__.copy()
+        self.structure  # noqa: B018 (a copy reads the boxes: restored, and kept here)
+        with self._lock:
+            state = self.__dict__.copy()
         state.pop("_lock", None)
         state["_cache"] = {}
-        if released:
-            state["_boxes"] = "held"  # the copy may release them after its own default queries
+        state["_boxes"] = "held"  # nothing has read the copy's tree yet
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
