@@ -5,8 +5,9 @@ batches) read the 8-wide rows and the packed layout's triangles only: once those
 derived, the canonical tree's boxes (24 bytes per node, a quarter of what a ready BVH
 holds) serve nothing they do. Issue 21 asks that derived data no query needs is not
 kept, so an :class:`~rayaccel.api.Accel` drops them after its first default query and
-recomputes them on the first use that reads them (another traversal, the geometry
-queries, ``info()``'s SAH, ``save``, ``refit``, pickling).
+recomputes them on the first use that reads its tree (another traversal, the geometry
+queries, ``save``, ``refit``, pickling), keeping them from then on; ``info()``
+recomputes them for its SAH without keeping them.
 
 Dropping is only allowed when recomputing gives the same bits: every leaf box must be
 the union of its triangles' corner boxes and every inner box the union of its
@@ -102,11 +103,6 @@ def boxes_are_unions(bvh: Bvh2, vertices: FloatArray, faces: IntArray) -> bool:
             vertices, faces,
         )  # fmt: skip
     return int(bad) == 0
-
-
-def has_boxes(bvh: Bvh2) -> bool:
-    """Whether ``bvh`` holds its node boxes (False after :func:`without_boxes`)."""
-    return int(bvh.node_lo.shape[0]) == bvh.n_nodes
 
 
 def releasable(cache: dict[str, Any]) -> bool:
