@@ -247,8 +247,9 @@ class Accel:
             return empty
         if device == "cuda":
             return self._trace_cuda(key, variant, rays, query, stats, opts)
-        # The default queries read derived layouts only: their boxes may stay released.
-        default = traversal is None and not options and key in released_bounds.TRAVERSALS
+        # The default queries' traversals (named or not) with their default options read
+        # derived layouts only: the tree's boxes may stay released.
+        default = not options and key in released_bounds.TRAVERSALS
         with self._lock:
             # One consistent snapshot: refit() swaps the three together.
             structure = self._structure if default else self.structure

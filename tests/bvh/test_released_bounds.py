@@ -46,8 +46,10 @@ def _released(mesh: rayaccel.TriangleMesh, rays: RayBatch, key: str = "bvh2.binn
     twin = rayaccel.build(mesh, key).structure
     boxes = (twin.node_lo, twin.node_hi)
     accel = rayaccel.build(mesh, key)
+    # Named with its default options, a default query's traversal reads no boxes either:
+    # this query already releases them.
+    accel.trace(rays, query="any", traversal="bvh2.wide")
     closest = accel.trace(rays)
-    accel.trace(rays, query="any")
     return accel, boxes, closest
 
 
