@@ -174,3 +174,15 @@ def test_threads_mixing_default_and_other_queries_agree(mesh, rays, oracle):
         for w in workers:
             w.join()
         assert not errors
+
+
+def test_a_default_traversal_named_without_options_releases_the_boxes(mesh, rays):
+    accel = rayaccel.build(mesh)
+    accel.trace(rays, query="any", traversal="bvh2.packet")
+    accel.trace(rays, traversal="bvh2.wide")
+    assert accel.info()["boxes_released"]
+    # With an option it is another traversal: a reader of the tree.
+    other = rayaccel.build(mesh)
+    other.trace(rays, traversal="bvh2.wide", width=4)
+    other.trace(rays)
+    assert not other.info()["boxes_released"]
