@@ -142,7 +142,7 @@ def _without_parallel_warning(compile_: Callable[..., Any]) -> Callable[..., Any
 
 
 def cpu_kernel(
-    *, parallel: bool = False, simplify: bool = False, exact: bool = False
+    *, parallel: bool = False, simplify: bool = False, exact: bool = False, nrt: bool = True
 ) -> Callable[[Callable[..., Any]], Any]:
     """Return the ``njit`` decorator used for every CPU kernel.
 
@@ -163,6 +163,11 @@ def cpu_kernel(
         Leave out the ``contract`` fast-math flag, so no multiply and add are fused:
         products round as numpy's do, for kernels whose results must match numpy's
         bit for bit on every machine.
+    nrt : bool
+        False compiles the kernel without numba's runtime: it allocates nothing, and
+        no array it binds, passes or unpacks is reference-counted (numba's ``_nrt``
+        flag). For hot loops that inline helpers taking arrays; the caller owns the
+        arrays for the duration of the call.
     """
     if parallel and simplify:
         raise ValueError("simplify is for serial kernels (parallel kernels already simplify)")
@@ -172,6 +177,7 @@ def cpu_kernel(
         nogil=True,
         fastmath=set(FASTMATH) - {"contract"} if exact else set(FASTMATH),
         error_model="numpy",
+        **({} if nrt else {"_nrt": False}),
     )
 
     def decorate(func: Callable[..., Any]) -> Any:

@@ -2,13 +2,16 @@
 
 Traversal kernels are lazily typed numba dispatchers, so float64 rays and triangle rows
 (``TriangleMesh(..., precision="float64")``) compile float64 specialisations of the
-very same per-ray code. Three operations in that code depend on the precision and are
+very same per-ray code. Four operations in that code depend on the precision and are
 written here once, as plain Python functions (the readable form the tests call) with
 a numba ``overload`` choosing the compiled form by the argument types at compile time:
 
 - :func:`next_up`: the next representable value above ``x`` in ``x``'s own precision
   (``tmax`` is inclusive while the triangle test's bound is strict).
 - :func:`as_real_like`: ``x`` converted to the precision of ``ref``.
+- :func:`in_precision_of`: of two arrays, the one whose dtype is ``ref``'s (a
+  body's float32 or float64 scratch, allocated ahead since a traversal body
+  allocates nothing, :mod:`rayaccel.trace.skeleton`).
 - :func:`edge_function`: ``a*b - c*d`` in float64, the 2D edge function of the
   watertight triangle test (Woop, Benthin, Wald 2013). For float32 operands the
   products are exact in float64, so the sign is exact (the paper's double-precision
@@ -40,6 +43,11 @@ def next_up(x: Any) -> Any:
 def as_real_like(x: Any, ref: Any) -> Any:
     """Return ``x`` converted to the float type of ``ref`` (float32 or float64)."""
     return type(ref)(x)
+
+
+def in_precision_of(ref: Any, single: Any, double: Any) -> Any:
+    """Return ``double`` for a float64 array ``ref``, else ``single``."""
+    return double if ref.dtype == np.float64 else single
 
 
 def edge_function(a: Any, b: Any, c: Any, d: Any) -> Any:
@@ -82,6 +90,13 @@ def _as_real_like_overload(x, ref):
     if ref == types.float64:
         return lambda x, ref: np.float64(x)
     return None
+
+
+@overload(in_precision_of, inline="always")
+def _in_precision_of_overload(ref, single, double):
+    if ref.dtype == types.float64:
+        return lambda ref, single, double: double
+    return lambda ref, single, double: single
 
 
 @overload(edge_function, inline="always")

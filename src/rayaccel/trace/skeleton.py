@@ -24,13 +24,16 @@ Both are inlined into the kernel at numba IR level, so the compiled code is the 
 of a hand-written loop. ``with_stats`` reaches the body as a compile-time constant,
 and LLVM removes the counter updates when it is off; ``query`` is a compile-time
 constant of the plain kernels and a run-time value of the statistics kernels
-(:func:`trace_kernel`), which the body tests only once it has a hit. The body takes a
-chunk rather than one ray because every array an inlined function receives or unpacks
-is reference-counted on entry and exit: once per ray that is a dozen atomic updates
-of counts that every thread shares, which cost ``bvh2.stack`` a third of its speed on
-primary rays; once per chunk it is nothing. The kernel returns the number of rays
-that overflowed; :func:`rayaccel.trace.run.run_trace` turns a non-zero count into
-``TraversalOverflowError``.
+(:func:`trace_kernel`), which the body tests only once it has a hit. The body runs
+a chunk at a time in a function compiled without numba's runtime
+(:func:`chunk_body`, ``cpu_kernel(nrt=False)``): numba reference-counts every array
+an inlined function receives or unpacks, with an atomic update of a count that every
+thread shares, and in a body whose loop calls helpers taking arrays (the packets'
+leaf and stack helpers) those updates sat inside the loop. Without the runtime there
+are none; the worker, which does use it, owns the arrays meanwhile. So a body
+allocates nothing: its arrays come from ``make_scratch``. The kernel returns the
+number of rays that overflowed; :func:`rayaccel.trace.run.run_trace` turns a
+non-zero count into ``TraversalOverflowError``.
 """
 
 from __future__ import annotations
@@ -50,6 +53,28 @@ RAY_CHUNK = 64
 
 
 @functools.cache
+def chunk_body(trace_rays: Any, with_stats: bool) -> Any:
+    """Return ``trace_rays`` compiled for one chunk without numba's runtime (no refcounts).
+
+    ``chunk(layout, scratch, origin, direction, tmin, tmax, begin, end, hit_t,
+    hit_prim, hit_u, hit_v, counters, query) -> n_overflowed``; see the module
+    docstring for why it is a function of its own.
+    """
+
+    @cpu_kernel(nrt=False)
+    def chunk(
+        layout, scratch, origin, direction, tmin, tmax, begin, end, hit_t, hit_prim, hit_u,
+        hit_v, counters, query,
+    ):  # fmt: skip
+        return trace_rays(
+            layout, scratch, origin, direction, tmin, tmax, begin, end,
+            hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+        )  # fmt: skip
+
+    return chunk
+
+
+@functools.cache
 def chunk_worker(make_scratch: Any, trace_rays: Any, with_stats: bool) -> Any:
     """Return the serial kernel one worker runs: take chunks from ``counter`` until none is left.
 
@@ -60,6 +85,7 @@ def chunk_worker(make_scratch: Any, trace_rays: Any, with_stats: bool) -> Any:
     the plain kernels and a run-time one in the statistics kernels
     (:func:`trace_kernel`); a body tests it only where it finds a hit.
     """
+    chunk_trace = chunk_body(trace_rays, with_stats)
 
     @cpu_kernel()
     def worker(
@@ -75,10 +101,10 @@ def chunk_worker(make_scratch: Any, trace_rays: Any, with_stats: bool) -> Any:
             chunk = next_item(counter, n_chunks)
             if chunk < 0:
                 break
-            overflow += trace_rays(
+            overflow += chunk_trace(
                 layout, scratch, origin, direction, tmin, tmax,
                 chunk * RAY_CHUNK, min(n_rays, (chunk + 1) * RAY_CHUNK),
-                hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
+                hit_t, hit_prim, hit_u, hit_v, counters, query,
             )  # fmt: skip
         return overflow
 

@@ -71,6 +71,7 @@ from rayaccel.kernels.aabb_packet import (
     packet_slab_test,
 )
 from rayaccel.kernels.ray_packet import KX, OCTANT, packet_setup
+from rayaccel.kernels.real import in_precision_of
 from rayaccel.kernels.triangle import ray_triangle
 from rayaccel.kernels.triangle_packet import ROWS as TRIANGLE_ROWS
 from rayaccel.kernels.triangle_packet import (
@@ -139,11 +140,16 @@ PACKET_WIDTHS = (2, 8)
 
 
 def make_scratch_py(bvh):
-    """Return one worker's stack references, leaf counts and integer lane state."""
+    """Return one worker's stack references, leaf counts, integer and real lane state.
+
+    The real-valued lanes come in both precisions; the body takes the rays'
+    (:func:`rayaccel.kernels.real.in_precision_of`).
+    """
     stack_ref = np.empty(STACK_SIZE, dtype=np.int32)
     stack_count = np.empty(STACK_SIZE, dtype=np.int32)
     lane_int = np.zeros((_INT_ROWS, PACKET), dtype=np.int64)
-    return stack_ref, stack_count, lane_int
+    lanes = (np.empty((_ROWS, PACKET), np.float32), np.empty((_ROWS, PACKET), np.float64))
+    return stack_ref, stack_count, lane_int, lanes
 
 
 def popcount_py(mask):
@@ -426,11 +432,11 @@ def trace_rays_py(
     hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
 ):  # fmt: skip
     """Trace rays ``begin:end`` through ``bvh`` (PairsArrays) in packets; return the overflows."""
-    stack_ref, stack_count, lane_int = scratch
+    stack_ref, stack_count, lane_int, both_lanes = scratch
     box = bvh.box
     refs = bvh.ref
-    # The packet's real-valued state, in the rays' precision (one allocation per chunk).
-    lanes = np.empty((_ROWS, PACKET), dtype=origin.dtype)
+    # The packet's real-valued state, in the rays' precision.
+    lanes = in_precision_of(origin, both_lanes[0], both_lanes[1])
     n_overflowed = 0
     for p0 in range(begin, end, PACKET):
         n_lanes = min(PACKET, end - p0)
@@ -542,20 +548,21 @@ def wide_packet_body(width: int) -> tuple[Any, Any]:
     n_rows = stack_row + stack_size
 
     def make_scratch_py(bvh):
-        """Return one worker's stack references and integer lane state."""
+        """Return one worker's stack references, integer and real lane state (both precisions)."""
         stack_ref = np.empty(stack_size, dtype=np.int32)
         lane_int = np.zeros((_INT_ROWS, PACKET), dtype=np.int64)
-        return stack_ref, lane_int
+        lanes = (np.empty((n_rows, PACKET), np.float32), np.empty((n_rows, PACKET), np.float64))
+        return stack_ref, lane_int, lanes
 
     def trace_rays_py(
         bvh, scratch, origin, direction, tmin, tmax, begin, end,
         hit_t, hit_prim, hit_u, hit_v, counters, query, with_stats,
     ):  # fmt: skip
         """Trace rays ``begin:end`` through ``bvh`` (WideArrays) in packets; return overflows."""
-        stack_ref, lane_int = scratch
+        stack_ref, lane_int, both_lanes = scratch
         box = bvh.box
         refs = bvh.ref
-        lanes = np.empty((n_rows, PACKET), dtype=origin.dtype)
+        lanes = in_precision_of(origin, both_lanes[0], both_lanes[1])
         n_overflowed = 0
         for p0 in range(begin, end, PACKET):
             n_lanes = min(PACKET, end - p0)
