@@ -524,8 +524,8 @@ def _check_complete(tri, kd, sorted_pairs, n_prims, max_depth):
 class KdTraceArrays(NamedTuple):
     """The trace layout as one kernel argument."""
 
-    node_f: FloatArray  # (n, 2) float32: split at column 0
-    node_i: IntArray  # (n, 2) int32 view of the same rows: packed bits at column 1
+    node_f: FloatArray  # (2n,) float32, the rows flat: node k's split at 2k
+    node_i: IntArray  # (2n,) int32 view of the same words: node k's packed bits at 2k + 1
     leaf_first: IntArray
     leaf_count: IntArray
     tri: FloatArray  # (n_refs, 9)
@@ -545,10 +545,10 @@ class KdTraceLayout:
     root_box: FloatArray
 
     def arrays(self) -> KdTraceArrays:
-        """Return the arrays as a NamedTuple kernels take as one argument."""
+        """Return the arrays as a NamedTuple kernels take as one argument (nodes flat)."""
         return KdTraceArrays(
-            self.nodes,
-            self.nodes.view(np.int32),
+            self.nodes.reshape(-1),
+            self.nodes.view(np.int32).reshape(-1),
             self.leaf_first,
             self.leaf_count,
             self.tri,

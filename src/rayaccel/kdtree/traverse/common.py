@@ -46,6 +46,25 @@ def split_distance_py(axis, split, ox, oy, oz, ix, iy, iz):
     return (split - oz) * iz, iz
 
 
+def node_bits_py(node_i, node):
+    """Return the packed word (axis, child or leaf) of ``node`` from the flat int32 view.
+
+    Read at the unsigned flat index ``2 node + 1``: numba then neither wraps a negative
+    index nor multiplies by the row length, two steps fewer on the walk's chain from one
+    node to the next (docs/performance.md, ``kdtree.stack``).
+    """
+    return node_i[np.uint64(2 * node + 1)]
+
+
+def node_split_py(node_f, node):
+    """Return the split position of inner node ``node`` from the flat float32 view."""
+    return node_f[np.uint64(2 * node)]
+
+
+node_bits = cpu_inline(node_bits_py)
+node_split = cpu_inline(node_split_py)
+
+
 def descend_py(node_f, node_i, node, tn, tf, ox, oy, oz, ix, iy, iz, side_mask, pad):
     """Descend from ``node`` to the leaf containing ``t = tn``; return it and its exit.
 
@@ -53,16 +72,17 @@ def descend_py(node_f, node_i, node, tn, tf, ox, oy, oz, ix, iy, iz, side_mask, 
     becomes ``min(tf, t_split)``), else the far child: of two cells meeting within
     the culling pad of ``t``, the nearer one, so no cell the ray passes within
     rounding of is skipped. A ray in the split plane goes to the upper child when bit
-    ``axis`` of ``side_mask`` is set. Returns ``(leaf node, exit, axes of planes the
-    ray lies in, nodes visited)``.
+    ``axis`` of ``side_mask`` is set. ``node_f`` and ``node_i`` are the trace layout's
+    flat views (:func:`node_bits`). Returns ``(leaf node, exit, axes of planes the ray lies in,
+    nodes visited)``.
     """
     in_plane = 0
     n_nodes = 1
-    bits = node_i[node, 1]
+    bits = node_bits(node_i, node)
     axis = bits & 3
     while axis != 3:
         child = bits >> 2
-        ts, inv = split_distance(axis, node_f[node, 0], ox, oy, oz, ix, iy, iz)
+        ts, inv = split_distance(axis, node_split(node_f, node), ox, oy, oz, ix, iy, iz)
         near = child if inv >= 0 else child + 1
         if tn <= ts + pad:
             node = near
@@ -74,7 +94,7 @@ def descend_py(node_f, node_i, node, tn, tf, ox, oy, oz, ix, iy, iz, side_mask, 
         else:
             node = 2 * child + 1 - near
         n_nodes += 1
-        bits = node_i[node, 1]
+        bits = node_bits(node_i, node)
         axis = bits & 3
     return node, tf, in_plane, n_nodes
 

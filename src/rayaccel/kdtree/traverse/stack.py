@@ -39,6 +39,8 @@ from rayaccel.kdtree.layouts.kdtree import NODE_BYTES, STACK_SIZE, KdTree
 from rayaccel.kdtree.traverse.common import (
     kd_trace_layout,
     leaf_hits,
+    node_bits,
+    node_split,
     root_segment,
     split_segments,
     store_leaf_counts,
@@ -108,10 +110,10 @@ def _body(order: int) -> Any:
                         n_steps += 1
                         n_nodes += 1
                         n_bytes += NODE_BYTES
-                    bits = node_i[node, 1]
+                    bits = node_bits(node_i, node)
                     axis = bits & 3
                     if axis != 3:
-                        split = node_f[node, 0]
+                        split = node_split(node_f, node)
                         near, far, near_needed, far_needed, near_tf, far_tn = split_segments(
                             bits, split, tn, tf, pad, ox, oy, oz, ix, iy, iz
                         )

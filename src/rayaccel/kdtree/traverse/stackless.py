@@ -61,6 +61,8 @@ from rayaccel.kdtree.traverse.common import (
     descend,
     leaf_hits,
     next_pending,
+    node_bits,
+    node_split,
     root_segment,
     split_segments,
     store_leaf_counts,
@@ -260,12 +262,12 @@ def trail_walk_py(
             if tn > box_hi:
                 pruned = True
                 break
-            bits = node_i[node, 1]
+            bits = node_bits(node_i, node)
             axis = bits & 3
             if axis == 3:
                 break
             near, far, near_needed, far_needed, near_tf, far_tn = split_segments(
-                bits, node_f[node, 0], tn, tf, pad, ox, oy, oz, ix, iy, iz
+                bits, node_split(node_f, node), tn, tf, pad, ox, oy, oz, ix, iy, iz
             )
             if near_needed and far_needed:
                 if method == METHOD_SHORT_STACK and not push_set:
@@ -304,7 +306,7 @@ def trail_walk_py(
         if not pruned:
             t_hit, best_prim, best_u, best_v, box_hi, n_leaves, n_empty, n_prim, n_bytes = (
                 leaf_hits(
-                    kd, node_i[node, 1] >> 2, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo,
+                    kd, node_bits(node_i, node) >> 2, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo,
                     t_hit, pad, best_prim, best_u, best_v, stop_at_first,
                     n_leaves, n_empty, n_prim, n_bytes, with_stats,
                 )
@@ -401,7 +403,7 @@ def rope_walk_py(
             in_plane |= seen
             n_nodes += n_desc
             n_bytes += NODE_BYTES * n_desc
-            leaf = kd.node_i[leaf_node, 1] >> 2
+            leaf = node_bits(kd.node_i, leaf_node) >> 2
             t_hit, best_prim, best_u, best_v, box_hi, n_leaves, n_empty, n_prim, n_bytes = (
                 leaf_hits(
                     kd, leaf, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
