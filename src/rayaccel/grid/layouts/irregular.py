@@ -50,14 +50,18 @@ MAX_FINE_RES = 2**20
 
 
 def voxel_cell_py(x, y, z, top_res, shift, log_dim, leaf_first, cell_of_leaf):
-    """Return the cell holding voxel ``(x, y, z)`` by the voxel map (two lookups)."""
-    t = (x >> shift) + top_res[0] * ((y >> shift) + top_res[1] * (z >> shift))
+    """Return the cell holding voxel ``(x, y, z)`` by the voxel map (two lookups).
+
+    The tables are read at unsigned indices, so numba adds no wraparound of negative
+    ones to the chain of dependent loads.
+    """
+    t = np.uint64((x >> shift) + top_res[0] * ((y >> shift) + top_res[1] * (z >> shift)))
     d = log_dim[t]
     s = shift - d
     mask = (1 << shift) - 1
     side = 1 << d
     leaf = ((x & mask) >> s) + side * (((y & mask) >> s) + side * ((z & mask) >> s))
-    return cell_of_leaf[leaf_first[t] + leaf]
+    return cell_of_leaf[np.uint64(leaf_first[t] + leaf)]
 
 
 voxel_cell = cpu_inline(voxel_cell_py)

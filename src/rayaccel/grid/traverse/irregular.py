@@ -75,8 +75,8 @@ def trace_rays_py(
                     cx, cy, cz, grid.top_res, shift, grid.log_dim, grid.leaf_first,
                     grid.cell_of_leaf,
                 )  # fmt: skip
-                first = grid.cell_start[cell]
-                last = grid.cell_start[cell + 1]
+                first = grid.cell_start[np.uint64(cell)]
+                last = grid.cell_start[np.uint64(cell + 1)]
                 if with_stats:
                     n_cells += 1
                     if first == last:
