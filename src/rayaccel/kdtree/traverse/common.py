@@ -162,8 +162,8 @@ def leaf_hits_py(
     culling interval's new end ``t_hit + pad``, and, with ``with_stats``, the leaf,
     empty leaf, triangle test and byte counters advanced by this leaf.
     """
-    first = kd.leaf_first[leaf]
-    count = kd.leaf_count[leaf]
+    first = kd.leaf_first[np.uint64(leaf)]  # unsigned: no wraparound (node_bits)
+    count = kd.leaf_count[np.uint64(leaf)]
     t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
         kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
         kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,

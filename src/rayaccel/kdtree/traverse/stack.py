@@ -144,9 +144,11 @@ def _body(order: int) -> Any:
                             else:
                                 pushed, pushed_tn, pushed_tf = far, far_tn, tf
                                 node, tf = near, near_tf
-                            stack_node[sp] = pushed
-                            stack_tn[sp] = pushed_tn
-                            stack_tf[sp] = pushed_tf
+                            # Unsigned slots: no wraparound (common.node_bits).
+                            slot = np.uint64(sp)
+                            stack_node[slot] = pushed
+                            stack_tn[slot] = pushed_tn
+                            stack_tf[slot] = pushed_tf
                             sp += 1
                             continue
                         if near_needed:
@@ -174,10 +176,11 @@ def _body(order: int) -> Any:
                         sp -= 1
                         if with_stats:
                             n_bytes += _STACK_ENTRY_BYTES
-                        if stack_tn[sp] <= box_hi:
-                            node = stack_node[sp]
-                            tn = stack_tn[sp]
-                            tf = stack_tf[sp]
+                        slot = np.uint64(sp)
+                        if stack_tn[slot] <= box_hi:
+                            node = stack_node[slot]
+                            tn = stack_tn[slot]
+                            tf = stack_tf[slot]
                             if box_hi < tf:
                                 tf = box_hi
                             done = False
