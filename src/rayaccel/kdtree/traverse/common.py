@@ -73,8 +73,8 @@ def descend_py(node_f, node_i, node, tn, tf, ox, oy, oz, ix, iy, iz, side_mask, 
     the culling pad of ``t``, the nearer one, so no cell the ray passes within
     rounding of is skipped. A ray in the split plane goes to the upper child when bit
     ``axis`` of ``side_mask`` is set. ``node_f`` and ``node_i`` are the trace layout's
-    flat views (:func:`node_bits`). Returns ``(leaf node, exit, axes of planes the ray lies in,
-    nodes visited)``.
+    flat views (:func:`node_bits`). Returns ``(leaf node, exit, axes of planes the ray
+    lies in, nodes visited)``.
     """
     in_plane = 0
     n_nodes = 1
