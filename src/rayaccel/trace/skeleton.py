@@ -92,7 +92,6 @@ def chunk_worker(make_scratch: Any, trace_rays: Any, with_stats: bool) -> Any:
         layout, origin, direction, tmin, tmax, hit_t, hit_prim, hit_u, hit_v, counters, counter,
         query,
     ):  # fmt: skip
-        _ = with_stats
         overflow = 0
         n_rays = origin.shape[0]
         n_chunks = (n_rays + RAY_CHUNK - 1) // RAY_CHUNK
