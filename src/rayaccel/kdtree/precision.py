@@ -66,8 +66,6 @@ from rayaccel.scene.mesh import TriangleMesh
 GROW = 2.0**-30
 
 
-
-
 @cpu_kernel(parallel=True)
 def _leaf_pairs(tri, node_split, node_bits, lo, hi, grow, counts, offsets, out_leaf, fill):
     """Count (``fill`` False) or write the leaves each float64 triangle touches.

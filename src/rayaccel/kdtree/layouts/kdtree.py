@@ -15,7 +15,11 @@ Canonical layout (:class:`KdTree`, what every builder emits)
     the closed cells the traversals visit must include their boundary.
 
 Trace layout (:class:`KdTraceLayout`, derived once per accel)
-    The node buffer as two views (split floats, packed ints), the leaf table, the
+    A copy of the nodes in which each leaf carries its triangle range itself:
+    ``(first, (count << 2) | 3)`` instead of ``(unused, (leaf << 2) | 3)``, so a walk
+    reaching a leaf reads no leaf table (the words it needs share the node's cache
+    line, and an empty leaf costs no further load); inner nodes as in the canonical
+    layout. The buffer is kept as two views (split floats, packed ints). Then the
     triangles copied in reference order (``tri (n_refs, 9)``, the rows of
     :meth:`rayaccel.scene.mesh.TriangleMesh.hit_rows`) with ``tri_prim`` naming each
     one's mesh triangle, and the scene box interleaved ``(lo_x, hi_x, lo_y, ...)``.
@@ -525,9 +529,7 @@ class KdTraceArrays(NamedTuple):
     """The trace layout as one kernel argument."""
 
     node_f: FloatArray  # (2n,) float32, the rows flat: node k's split at 2k
-    node_i: IntArray  # (2n,) int32 view of the same words: node k's packed bits at 2k + 1
-    leaf_first: IntArray
-    leaf_count: IntArray
+    node_i: IntArray  # (2n,) int32 view: node k's packed bits at 2k + 1, a leaf's first at 2k
     tri: FloatArray  # (n_refs, 9)
     tri_prim: IntArray  # (n_refs,)
     root_box: FloatArray  # (6,) interleaved lo/hi
@@ -535,11 +537,9 @@ class KdTraceArrays(NamedTuple):
 
 @dataclass(frozen=True, slots=True, eq=False)
 class KdTraceLayout:
-    """The canonical nodes plus triangles in reference order (see the module docstring)."""
+    """Nodes with leaf ranges, plus triangles in reference order (see the module docstring)."""
 
     nodes: FloatArray
-    leaf_first: IntArray
-    leaf_count: IntArray
     tri: FloatArray
     tri_prim: IntArray
     root_box: FloatArray
@@ -549,16 +549,27 @@ class KdTraceLayout:
         return KdTraceArrays(
             self.nodes.reshape(-1),
             self.nodes.view(np.int32).reshape(-1),
-            self.leaf_first,
-            self.leaf_count,
             self.tri,
             self.tri_prim,
             self.root_box,
         )
 
     def nbytes(self) -> int:
-        """Return the size in bytes of what this layout adds (the triangle copies)."""
-        return int(self.tri.nbytes)
+        """Return the size in bytes of what this layout adds (node and triangle copies)."""
+        return int(self.nodes.nbytes + self.tri.nbytes)
+
+
+def nodes_with_leaf_ranges(kd: KdTree) -> FloatArray:
+    """Return a copy of ``kd.nodes`` whose leaves read ``(first, (count << 2) | 3)``."""
+    if int(kd.leaf_count.max(initial=0)) >= 2**29:
+        raise StructureInvariantError("a kd leaf lists 2**29 or more triangles")
+    nodes = kd.nodes.copy()
+    words = nodes.view(np.int32)
+    leaf_nodes = np.flatnonzero((words[:, 1] & 3) == LEAF_AXIS)
+    leaf = words[leaf_nodes, 1] >> 2
+    words[leaf_nodes, 0] = kd.leaf_first[leaf]
+    words[leaf_nodes, 1] = (kd.leaf_count[leaf] << 2) | LEAF_AXIS
+    return nodes
 
 
 def trace_layout(kd: KdTree, hit_rows: FloatArray) -> KdTraceLayout:
@@ -574,9 +585,7 @@ def trace_layout(kd: KdTree, hit_rows: FloatArray) -> KdTraceLayout:
     root_box[0::2] = kd.lo
     root_box[1::2] = kd.hi
     return KdTraceLayout(
-        nodes=kd.nodes,
-        leaf_first=kd.leaf_first,
-        leaf_count=kd.leaf_count,
+        nodes=nodes_with_leaf_ranges(kd),
         tri=gather_rows(hit_rows, kd.prim_index),
         tri_prim=np.ascontiguousarray(kd.prim_index),
         root_box=root_box,

@@ -61,8 +61,19 @@ def node_split_py(node_f, node):
     return node_f[np.uint64(2 * node)]
 
 
+def leaf_range_py(node_i, node):
+    """Return ``(first, count)`` of leaf node ``node``: its two words in the trace layout.
+
+    The trace layout's leaves carry their range themselves
+    (:func:`rayaccel.kdtree.layouts.kdtree.nodes_with_leaf_ranges`), in the cache line
+    the walk has just read for the node's bits.
+    """
+    return node_i[np.uint64(2 * node)], node_i[np.uint64(2 * node + 1)] >> 2
+
+
 node_bits = cpu_inline(node_bits_py)
 node_split = cpu_inline(node_split_py)
+leaf_range = cpu_inline(leaf_range_py)
 
 
 def descend_py(node_f, node_i, node, tn, tf, ox, oy, oz, ix, iy, iz, side_mask, pad):
@@ -152,18 +163,17 @@ root_segment = cpu_inline(root_segment_py)
 
 
 def leaf_hits_py(
-    kd, leaf, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+    kd, node, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
     best_prim, best_u, best_v, stop_at_first, n_leaves, n_empty, n_prim, n_bytes, with_stats,
 ):  # fmt: skip
-    """Test the triangles of leaf ``leaf`` (``leaf_first``/``leaf_count`` of ``kd``).
+    """Test the triangles of leaf node ``node`` (its range: :func:`leaf_range`).
 
     Returns ``(t_hit, best_prim, best_u, best_v, box_hi, n_leaves, n_empty, n_prim,
     n_bytes)``: the hit as :func:`rayaccel.trace.leaf.intersect_leaf` leaves it, the
     culling interval's new end ``t_hit + pad``, and, with ``with_stats``, the leaf,
     empty leaf, triangle test and byte counters advanced by this leaf.
     """
-    first = kd.leaf_first[np.uint64(leaf)]  # unsigned: no wraparound (node_bits)
-    count = kd.leaf_count[np.uint64(leaf)]
+    first, count = leaf_range(kd.node_i, node)
     t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
         kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
         kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,

@@ -12,7 +12,9 @@ face of the nearest exit distance and descends from that face's rope; where it
 leaves through an edge or a corner, the cells around it are visited as the stack
 visits them (:mod:`rayaccel.kdtree.traverse.stackless`). Counters: those of
 ``kdtree.stack`` plus ``rope_steps``. ``info()`` of the accel counts the leaf boxes
-and ropes in ``bytes`` (48 bytes per leaf).
+and ropes in ``bytes`` (48 bytes per leaf, and 4 per node for the index that finds
+a leaf node's box and ropes: the trace layout's leaves carry their triangle range
+in place of their index).
 """
 
 from __future__ import annotations
@@ -50,10 +52,11 @@ class KdRopes:
 
     leaf_box: np.ndarray  # (n_leaves, 6) float32
     leaf_rope: np.ndarray  # (n_leaves * 6,) int32 node ids, -1 null
+    leaf_index: np.ndarray  # (n_nodes,) int32: a leaf node's leaf (its box and ropes), else -1
 
     def nbytes(self) -> int:
-        """Return the size in bytes of the leaf boxes and ropes."""
-        return int(self.leaf_box.nbytes + self.leaf_rope.nbytes)
+        """Return the size in bytes of the leaf boxes, the ropes and the leaf index."""
+        return int(self.leaf_box.nbytes + self.leaf_rope.nbytes + self.leaf_index.nbytes)
 
 
 @cpu_kernel()
@@ -111,7 +114,9 @@ def rope_layout(kd: KdTree, optimize: bool) -> KdRopes:
         np.ascontiguousarray(kd.node_split), np.ascontiguousarray(kd.node_bits), lo, hi,
         bool(optimize), node_rope, leaf_box, leaf_rope,
     )  # fmt: skip
-    return KdRopes(leaf_box, leaf_rope)
+    bits = kd.node_bits
+    leaf_index = np.where((bits & 3) == LEAF_AXIS, bits >> 2, -1).astype(INDEX)
+    return KdRopes(leaf_box, leaf_rope, leaf_index)
 
 
 @register_traversal("kdtree.ropes")
@@ -130,6 +135,7 @@ def trace_kdtree_ropes(
     name = "kdtree.ropes" if options.optimize else "kdtree.ropes_plain"
     ropes = memoised_layout(cache, name, lambda: rope_layout(kd, options.optimize))
     arrays = stackless_arrays(
-        kd_trace_layout(kd, mesh, cache), ropes.leaf_box, ropes.leaf_rope, method=METHOD_ROPES
-    )
+        kd_trace_layout(kd, mesh, cache), ropes.leaf_box, ropes.leaf_rope,
+        method=METHOD_ROPES, leaf_index=ropes.leaf_index,
+    )  # fmt: skip
     return TracePlan(trace_kernel(METHOD_ROPES), arrays)

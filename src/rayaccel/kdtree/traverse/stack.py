@@ -164,9 +164,9 @@ def _body(order: int) -> Any:
                             t_hit, best_prim, best_u, best_v, box_hi,
                             n_leaves, n_empty, n_prim, n_bytes,
                         ) = leaf_hits(
-                            kd, bits >> 2, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit,
-                            pad, best_prim, best_u, best_v, query == QUERY_ANY,
-                            n_leaves, n_empty, n_prim, n_bytes, with_stats,
+                            kd, node, okx, oky, okz, kx, ky, kz,
+                            Sx, Sy, Sz, t_lo, t_hit, pad, best_prim, best_u, best_v,
+                            query == QUERY_ANY, n_leaves, n_empty, n_prim, n_bytes, with_stats,
                         )  # fmt: skip
                         if query == QUERY_ANY and best_prim >= 0:
                             break

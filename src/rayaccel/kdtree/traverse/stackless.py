@@ -87,8 +87,7 @@ class StacklessArrays(NamedTuple):
 
     node_f: FloatArray
     node_i: IntArray
-    leaf_first: IntArray
-    leaf_count: IntArray
+    leaf_index: IntArray  # (n,) each leaf node's leaf, which names its ropes (ropes), or (1,)
     tri: FloatArray
     tri_prim: IntArray
     root_box: FloatArray
@@ -104,6 +103,7 @@ def stackless_arrays(
     link: IntArray | None = None,
     ring_size: int = 1,
     method: int = METHOD_RESTART,
+    leaf_index: IntArray | None = None,
 ) -> StacklessArrays:
     """Return the kernel argument: ``layout``'s arrays plus boxes, links, ring size and method.
 
@@ -113,7 +113,8 @@ def stackless_arrays(
     """
     t = layout.arrays()
     return StacklessArrays(
-        t.node_f, t.node_i, t.leaf_first, t.leaf_count, t.tri, t.tri_prim, t.root_box,
+        t.node_f, t.node_i, np.zeros(1, np.int32) if leaf_index is None else leaf_index,
+        t.tri, t.tri_prim, t.root_box,
         np.zeros((1, 6), np.float32) if box is None else box,
         np.zeros(1, np.int32) if link is None else link,
         np.array([ring_size], np.int32),
@@ -306,7 +307,7 @@ def trail_walk_py(
         if not pruned:
             t_hit, best_prim, best_u, best_v, box_hi, n_leaves, n_empty, n_prim, n_bytes = (
                 leaf_hits(
-                    kd, node_bits(node_i, node) >> 2, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo,
+                    kd, node, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo,
                     t_hit, pad, best_prim, best_u, best_v, stop_at_first,
                     n_leaves, n_empty, n_prim, n_bytes, with_stats,
                 )
@@ -403,10 +404,10 @@ def rope_walk_py(
             in_plane |= seen
             n_nodes += n_desc
             n_bytes += NODE_BYTES * n_desc
-            leaf = node_bits(kd.node_i, leaf_node) >> 2
+            leaf = kd.leaf_index[np.uint64(leaf_node)]
             t_hit, best_prim, best_u, best_v, box_hi, n_leaves, n_empty, n_prim, n_bytes = (
                 leaf_hits(
-                    kd, leaf, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
+                    kd, leaf_node, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, pad,
                     best_prim, best_u, best_v, stop_at_first, n_leaves, n_empty, n_prim,
                     n_bytes, True,
                 )
@@ -487,7 +488,7 @@ def _body(ropes: bool) -> Any:
         _ = ropes
         method = kd.method[0]
         size = np.int64(kd.ring_size[0])
-        n_leaf_total = kd.leaf_first.shape[0]
+        n_leaf_total = kd.node_box.shape[0]  # the ropes' leaf boxes (read by the rope walk)
         n_overflowed = 0
         for r in range(begin, end):
             overflowed = n_steps = n_nodes = n_leaves = n_empty = n_prim = n_restarts = 0
