@@ -563,7 +563,7 @@ def nodes_with_leaf_ranges(kd: KdTree) -> FloatArray:
     """Return a copy of ``kd.nodes`` whose leaves read ``(first, (count << 2) | 3)``."""
     if int(kd.leaf_count.max(initial=0)) >= 2**29:
         raise StructureInvariantError("a kd leaf lists 2**29 or more triangles")
-    nodes = kd.nodes.copy()
+    nodes: FloatArray = kd.nodes.copy()
     words = nodes.view(np.int32)
     leaf_nodes = np.flatnonzero((words[:, 1] & 3) == LEAF_AXIS)
     leaf = words[leaf_nodes, 1] >> 2
