@@ -68,13 +68,23 @@ def separating_axes_py(tri, prim, lo, hi, plane_axis):
     The 12 axes of the box faces and box axis × triangle edge, and the triangle's normal
     when ``plane_axis`` (a compile-time constant where it is inlined).
     """
+    return separating_axes_of_box(tri, prim, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], plane_axis)
+
+
+def separating_axes_of_box_py(tri, prim, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z, plane_axis):
+    """:func:`separating_axes_py` with the box's corners as six scalars.
+
+    A caller that makes many boxes (a grid's cells) keeps their corners in registers
+    instead of writing them to a small array the compiler must assume other arrays
+    may alias.
+    """
     # Box centre and half extents; the triangle moved so the box is centred at 0.
-    cx = 0.5 * (np.float64(lo[0]) + hi[0])
-    cy = 0.5 * (np.float64(lo[1]) + hi[1])
-    cz = 0.5 * (np.float64(lo[2]) + hi[2])
-    hx = 0.5 * (np.float64(hi[0]) - lo[0])
-    hy = 0.5 * (np.float64(hi[1]) - lo[1])
-    hz = 0.5 * (np.float64(hi[2]) - lo[2])
+    cx = 0.5 * (np.float64(lo_x) + hi_x)
+    cy = 0.5 * (np.float64(lo_y) + hi_y)
+    cz = 0.5 * (np.float64(lo_z) + hi_z)
+    hx = 0.5 * (np.float64(hi_x) - lo_x)
+    hy = 0.5 * (np.float64(hi_y) - lo_y)
+    hz = 0.5 * (np.float64(hi_z) - lo_z)
     v0x = tri[prim, 0, 0] - cx
     v0y = tri[prim, 0, 1] - cy
     v0z = tri[prim, 0, 2] - cz
@@ -144,6 +154,7 @@ def separating_axes_py(tri, prim, lo, hi, plane_axis):
     return not abs(d) > r
 
 
+separating_axes_of_box = cpu_inline(separating_axes_of_box_py)
 separating_axes = cpu_inline(separating_axes_py)
 
 

@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
@@ -45,7 +45,7 @@ from rayaccel.grid.builders.uniform import (
 )
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import MAX_RES_AXIS, SKIP_DISTANCE, cell_margin
-from rayaccel.kernels.overlap import triangle_box_overlap
+from rayaccel.kernels.overlap import separating_axes_of_box
 from rayaccel.scene.mesh import TriangleMesh
 
 
@@ -83,24 +83,48 @@ class TwoLevelOptions:
         UniformGridOptions(1.0, self.max_cells, self.max_refs, self.max_refs_per_prim)
 
 
+@cpu_kernel()
+def _sub_resolutions(size, counts, density, max_axis, out):
+    """Fill ``out`` with Slusallek's resolution of a ``size`` box per reference count.
+
+    Per top cell: ``wanted = max(λ2·count, 1)`` cells, shared by the free axes as
+    ``size · (wanted / volume)^(1/k)``; an axis that would get fewer than one cell
+    gets one and leaves the others (at most three rounds); then rounded and clamped
+    to ``[1, max_axis]``, and one cell for an empty top cell.
+    """
+    res = np.empty(3, dtype=np.float64)
+    for c in range(counts.shape[0]):
+        wanted = max(density * np.float64(counts[c]), 1.0)
+        free = 7
+        for _ in range(3):
+            k = 0
+            volume = 1.0
+            for a in range(3):
+                if (free >> a) & 1:
+                    k += 1
+                    volume *= size[a]
+            scale = (wanted / volume) ** (1.0 / max(k, 1))
+            small = 0
+            for a in range(3):
+                res[a] = size[a] * scale if (free >> a) & 1 else 1.0
+                if (free >> a) & 1 and res[a] < 1.0:
+                    small |= 1 << a
+            if small == 0:
+                break
+            free &= ~small
+        for a in range(3):
+            r = np.floor(res[a] + 0.5)
+            out[c, a] = 1 if counts[c] == 0 else np.int32(min(max(r, 1.0), max_axis))
+
+
 def sub_resolutions(size: np.ndarray, counts: np.ndarray, density: float) -> np.ndarray:
     """Return ``(n_top, 3)`` int32 leaf resolutions: Slusallek's formula per top cell."""
-    e = np.asarray(size, dtype=np.float64)
-    wanted = np.maximum(density * counts.astype(np.float64), 1.0)
-    free = np.ones((counts.shape[0], 3), dtype=bool)
-    res = np.ones((counts.shape[0], 3), dtype=np.float64)
-    for _ in range(3):
-        k = free.sum(axis=1)
-        volume = np.prod(np.where(free, e, 1.0), axis=1)
-        scale = (wanted / volume) ** (1.0 / np.maximum(k, 1))
-        res = np.where(free, e * scale[:, None], 1.0)
-        small = free & (res < 1.0)
-        if not small.any():
-            break
-        free &= ~small
-    out = np.clip(np.floor(res + 0.5), 1, MAX_RES_AXIS)
-    out[counts == 0] = 1
-    return out.astype(INDEX)
+    out = np.empty((counts.shape[0], 3), dtype=INDEX)
+    _sub_resolutions(
+        np.asarray(size, dtype=np.float64), np.ascontiguousarray(counts), float(density),
+        float(MAX_RES_AXIS), out,
+    )  # fmt: skip
+    return out
 
 
 #: ``_leaf_refs`` modes (see there).
@@ -112,6 +136,25 @@ FILL = 3
 DEFERRED = -1
 #: Rounds of halving sub-grid resolutions before the leaf level fits its reference budget.
 MAX_SHRINK_ROUNDS = 64
+
+
+def _leaf_span_py(tri, p, a, corner, inv, m2, r):
+    """Return the leaves ``first, last`` along axis ``a`` that triangle ``p``'s box spans.
+
+    The box is widened by twice the margin ``m2 / 2``; ``corner`` is the top cell's
+    lower corner on that axis, ``inv`` one over the leaf size, ``r`` the leaves along it.
+    The third value says whether the widened box lies within one leaf, unclamped.
+    """
+    t_lo = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+    t_hi = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+    j0 = np.int64(np.floor((np.float64(t_lo) - m2 - corner) * inv))
+    j1 = np.int64(np.floor((np.float64(t_hi) + m2 - corner) * inv))
+    first = min(max(j0, 0), r - 1)
+    last = min(max(j1, 0), r - 1)
+    return first, last, first == last and j0 >= 0 and j1 < r
+
+
+_leaf_span = cpu_inline(_leaf_span_py)
 
 
 @cpu_kernel(parallel=True)
@@ -145,38 +188,46 @@ def _leaf_refs(
     ry = res[1]
     total = 0
     for ch in prange(chunk_cells.shape[0] - 1):
-        b_lo = np.empty(3, dtype=np.float32)
-        b_hi = np.empty(3, dtype=np.float32)
-        top_lo = np.empty(3, dtype=np.float32)
         for c in range(chunk_cells[ch], chunk_cells[ch + 1]):
-            top_lo[0] = lo[0] + np.float32(c % rx) * size[0]
-            top_lo[1] = lo[1] + np.float32((c // rx) % ry) * size[1]
-            top_lo[2] = lo[2] + np.float32(c // (rx * ry)) * size[2]
-            lrx = np.int64(sub_res[c, 0])
-            lry = np.int64(sub_res[c, 1])
+            # This top cell's corner, leaf sizes and margins as scalars: the candidate
+            # boxes stay in registers (no small array that other arrays may alias).
+            lo_x = lo[0] + np.float32(c % rx) * size[0]
+            lo_y = lo[1] + np.float32((c // rx) % ry) * size[1]
+            lo_z = lo[2] + np.float32(c // (rx * ry)) * size[2]
+            s_x = leaf_size[c, 0]
+            s_y = leaf_size[c, 1]
+            s_z = leaf_size[c, 2]
+            m_x = margin[c, 0]
+            m_y = margin[c, 1]
+            m_z = margin[c, 2]
+            inv_x = 1.0 / np.float64(s_x)
+            inv_y = 1.0 / np.float64(s_y)
+            inv_z = 1.0 / np.float64(s_z)
+            m2_x = 2.0 * np.float64(m_x)
+            m2_y = 2.0 * np.float64(m_y)
+            m2_z = 2.0 * np.float64(m_z)
+            r_x = np.int64(sub_res[c, 0])
+            r_y = np.int64(sub_res[c, 1])
+            r_z = np.int64(sub_res[c, 2])
+            lrx = r_x
+            lry = r_y
             base = np.int64(leaf_first[c])
             for i in range(cell_start[c], cell_start[c + 1]):
                 p = top_prim[i]
                 if mode == COUNT_REST and counts[i] != DEFERRED:
                     continue
                 if mode in (BOUND, COUNT):
-                    single = True
-                    n_cand = np.int64(1)
-                    for a in range(3):
-                        t_lo = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
-                        t_hi = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
-                        inv = 1.0 / np.float64(leaf_size[c, a])
-                        m2 = 2.0 * np.float64(margin[c, a])
-                        j0 = np.int64(np.floor((np.float64(t_lo) - m2 - top_lo[a]) * inv))
-                        j1 = np.int64(np.floor((np.float64(t_hi) + m2 - top_lo[a]) * inv))
-                        r = np.int64(sub_res[c, a])
-                        first = min(max(j0, 0), r - 1)
-                        last = min(max(j1, 0), r - 1)
-                        span[i, a] = first
-                        span[i, 3 + a] = last
-                        n_cand *= last - first + 1
-                        if first != last or j0 < 0 or j1 >= r:
-                            single = False
+                    x0, x1, x_one = _leaf_span(tri, p, 0, lo_x, inv_x, m2_x, r_x)
+                    y0, y1, y_one = _leaf_span(tri, p, 1, lo_y, inv_y, m2_y, r_y)
+                    z0, z1, z_one = _leaf_span(tri, p, 2, lo_z, inv_z, m2_z, r_z)
+                    span[i, 0] = x0
+                    span[i, 1] = y0
+                    span[i, 2] = z0
+                    span[i, 3] = x1
+                    span[i, 4] = y1
+                    span[i, 5] = z1
+                    n_cand = (x1 - x0 + 1) * (y1 - y0 + 1) * (z1 - z0 + 1)
+                    single = x_one and y_one and z_one
                     total += n_cand
                     if mode == BOUND:
                         continue
@@ -202,22 +253,22 @@ def _leaf_refs(
                 k = 0
                 n_hit = 0
                 for z in range(z0, z1 + 1):
-                    b_lo[2] = top_lo[2] + np.float32(z) * leaf_size[c, 2] - margin[c, 2]
-                    b_hi[2] = top_lo[2] + np.float32(z + 1) * leaf_size[c, 2] + margin[c, 2]
+                    bz_lo = lo_z + np.float32(z) * s_z - m_z
+                    bz_hi = lo_z + np.float32(z + 1) * s_z + m_z
                     for y in range(y0, y1 + 1):
-                        b_lo[1] = top_lo[1] + np.float32(y) * leaf_size[c, 1] - margin[c, 1]
-                        b_hi[1] = top_lo[1] + np.float32(y + 1) * leaf_size[c, 1] + margin[c, 1]
+                        by_lo = lo_y + np.float32(y) * s_y - m_y
+                        by_hi = lo_y + np.float32(y + 1) * s_y + m_y
                         for x in range(x0, x1 + 1):
                             if from_bits:
                                 hit = (bits >> k) & 1 == 1
                             elif every:
                                 hit = True
                             else:
-                                b_lo[0] = top_lo[0] + np.float32(x) * leaf_size[c, 0]
-                                b_lo[0] -= margin[c, 0]
-                                b_hi[0] = top_lo[0] + np.float32(x + 1) * leaf_size[c, 0]
-                                b_hi[0] += margin[c, 0]
-                                hit = triangle_box_overlap(tri, p, b_lo, b_hi)
+                                bx_lo = lo_x + np.float32(x) * s_x - m_x
+                                bx_hi = lo_x + np.float32(x + 1) * s_x + m_x
+                                hit = separating_axes_of_box(
+                                    tri, p, bx_lo, by_lo, bz_lo, bx_hi, by_hi, bz_hi, True
+                                )
                                 if masked and hit:
                                     bits |= np.int64(1) << k
                             if hit:
@@ -338,7 +389,7 @@ def leaf_level(
     size = ((top.hi - top.lo) / top.res).astype(REAL)
     chunks = _chunk_cells(top.cell_start)
     n_ref = top.n_refs
-    counts = np.empty(n_ref, dtype=np.int64)
+    counts = np.empty(n_ref, dtype=np.int32)
     masks = np.empty(n_ref, dtype=np.int64)
     span = np.empty((n_ref, 6), dtype=np.int16)
     budget = min(opts.max_refs, max(n_ref, int(opts.max_refs_per_prim * top.n_prims)))
@@ -349,7 +400,7 @@ def leaf_level(
         n_leaves = int(leaf_first64[-1])
         # Counted in the same pass unless the leaves are too many to count.
         fits = n_leaves <= opts.max_cells
-        cursor = np.zeros(n_leaves + 1 if fits else 0, dtype=np.int64)
+        cursor = np.zeros(n_leaves + 1 if fits else 0, dtype=INDEX)
         args = (tri, top.cell_start, top.prim_index, chunks, top.lo, size, top.res, sub_res,
                 leaf_first64 if fits else np.zeros(n_top + 1, np.int64), leaf_size, margin,
                 span, counts, masks, cursor)  # fmt: skip
@@ -369,11 +420,11 @@ def leaf_level(
         _leaf_refs(*args, np.empty(0, np.int32), COUNT_REST)
     phases["leaf_count"] = (time.perf_counter() - t0) * 1e3
     t1 = time.perf_counter()
-    np.cumsum(cursor, out=cursor)
-    n_pairs = int(cursor[-1])
+    n_pairs = int(counts.sum(dtype=np.int64))
     if n_pairs > 2**31 - 1:
         raise InvalidInputError(f"{asked}: {n_pairs} leaf references exceed int32")
-    leaf_start = cursor.astype(INDEX)
+    np.cumsum(cursor, out=cursor)  # int32: the pairs fit, checked above
+    leaf_start = cursor.copy()
     values = np.empty(n_pairs, dtype=np.int32)
     _leaf_refs(*args, values, FILL)
     phases["leaf_fill"] = (time.perf_counter() - t1) * 1e3
