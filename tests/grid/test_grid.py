@@ -103,6 +103,19 @@ def test_resolution_formula():
     assert tuple(grid_resolution(np.array([1.0, 1e-9, 1e-9]), 50)) == (50, 1, 1)
 
 
+def test_sub_grid_resolutions_follow_the_formula():
+    """Each top cell's sub-grid is Slusallek's resolution of its box for λ2 · references."""
+    rng = np.random.default_rng(7)
+    for size in ([1.0, 1.0, 1.0], [2.0, 0.5, 1e-6], [3.0, 1e-9, 1e-9]):
+        counts = np.concatenate([[0, 1, 2], rng.integers(0, 20000, 200)])
+        got = two_level.sub_resolutions(np.array(size), counts, 1.2)
+        assert got.dtype == np.int32
+        assert got.shape == (counts.size, 3)
+        for c, n in enumerate(counts):
+            want = (1, 1, 1) if n == 0 else tuple(grid_resolution(np.array(size), 1.2 * n))
+            assert tuple(got[c]) == want, (size, n)
+
+
 def test_density_cap_raises():
     mesh = reference.cube()
     with pytest.raises(InvalidInputError, match="max_cells"):

@@ -17,7 +17,14 @@ import rayaccel
 import reference
 from rayaccel import registry
 from rayaccel.errors import InvalidInputError, StructureInvariantError
-from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, MAX_DEPTH, KdTree, max_depth_for
+from rayaccel.kdtree.layouts.kdtree import (
+    LEAF_AXIS,
+    MAX_DEPTH,
+    KdTree,
+    max_depth_for,
+    nodes_with_leaf_ranges,
+)
+from rayaccel.kdtree.traverse.ropes import rope_layout
 from rayaccel.rays.batch import RayBatch
 
 BUILDS = [
@@ -88,6 +95,24 @@ def test_perfect_splits_list_fewer_references(sphere_accels):
     assert perfect.perfect_splits
     assert not boxes.perfect_splits
     assert perfect.sah_cost() < boxes.sah_cost()
+
+
+def test_trace_layout_leaves_carry_their_ranges(sphere_accels):
+    """The trace layout's leaves read (first, count << 2 | 3); inner nodes are the tree's."""
+    kd = sphere_accels["kdtree.sah", ()].structure
+    words = nodes_with_leaf_ranges(kd).view(np.int32)
+    bits = kd.node_bits
+    leaf = (bits & 3) == LEAF_AXIS
+    assert leaf.any()
+    assert (~leaf).any()
+    assert np.array_equal(words[~leaf], kd.nodes.view(np.int32)[~leaf])
+    ids = bits[leaf] >> 2
+    assert np.array_equal(words[leaf, 0], kd.leaf_first[ids])
+    assert np.array_equal(words[leaf, 1], (kd.leaf_count[ids] << 2) | LEAF_AXIS)
+    # The ropes find a leaf node's box and ropes through their own index.
+    ropes = rope_layout(kd, True)
+    assert np.array_equal(ropes.leaf_index[leaf], ids)
+    assert (ropes.leaf_index[~leaf] == -1).all()
 
 
 def test_validate_catches_a_missing_reference(sphere_accels):
