@@ -209,8 +209,6 @@ def _leaf_refs(
             r_x = np.int64(sub_res[c, 0])
             r_y = np.int64(sub_res[c, 1])
             r_z = np.int64(sub_res[c, 2])
-            lrx = r_x
-            lry = r_y
             base = np.int64(leaf_first[c])
             for i in range(cell_start[c], cell_start[c + 1]):
                 p = top_prim[i]
@@ -232,7 +230,7 @@ def _leaf_refs(
                     if mode == BOUND:
                         continue
                     if single:
-                        cursor[base + span[i, 0] + lrx * (span[i, 1] + lry * span[i, 2]) + 1] += 1
+                        cursor[base + x0 + r_x * (y0 + r_y * z0) + 1] += 1
                         counts[i] = 1
                         masks[i] = 1
                         continue
@@ -272,7 +270,7 @@ def _leaf_refs(
                                 if masked and hit:
                                     bits |= np.int64(1) << k
                             if hit:
-                                leaf = base + x + lrx * (y + lry * z)
+                                leaf = base + x + r_x * (y + r_y * z)
                                 if fill:
                                     values[cursor[leaf]] = p
                                     cursor[leaf] += 1
