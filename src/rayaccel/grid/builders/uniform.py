@@ -48,7 +48,7 @@ from rayaccel.grid.layouts.uniform import (
     UniformGrid,
     cell_margin,
 )
-from rayaccel.kernels.overlap import triangle_box_overlap
+from rayaccel.kernels.overlap import separating_axes_of_box
 from rayaccel.kernels.radix_sort import radix_sort
 from rayaccel.scene.mesh import TriangleMesh
 
@@ -235,9 +235,10 @@ def _pairs(tri, lo, size, margin, res, first, last, counts, masks, offsets, keys
     n_chunks = (n + PRIM_CHUNK - 1) // PRIM_CHUNK
     rx = np.int64(res[0])
     ry = np.int64(res[1])
+    lo_x, lo_y, lo_z = lo[0], lo[1], lo[2]
+    s_x, s_y, s_z = size[0], size[1], size[2]
+    m_x, m_y, m_z = margin[0], margin[1], margin[2]
     for c in prange(n_chunks):
-        b_lo = np.empty(3, dtype=np.float32)
-        b_hi = np.empty(3, dtype=np.float32)
         for p in range(c * PRIM_CHUNK, min(n, (c + 1) * PRIM_CHUNK)):
             x0 = first[p, 0]
             y0 = first[p, 1]
@@ -259,21 +260,24 @@ def _pairs(tri, lo, size, margin, res, first, last, counts, masks, offsets, keys
             every = fill and counts[p] == n_cand
             bits = masks[p] if fill and masked else np.int64(0)
             k = 0
+            # The candidate boxes as scalars (see two_level._leaf_refs).
             for z in range(z0, z1 + 1):
-                b_lo[2] = lo[2] + np.float32(z) * size[2] - margin[2]
-                b_hi[2] = lo[2] + np.float32(z + 1) * size[2] + margin[2]
+                bz_lo = lo_z + np.float32(z) * s_z - m_z
+                bz_hi = lo_z + np.float32(z + 1) * s_z + m_z
                 for y in range(y0, y1 + 1):
-                    b_lo[1] = lo[1] + np.float32(y) * size[1] - margin[1]
-                    b_hi[1] = lo[1] + np.float32(y + 1) * size[1] + margin[1]
+                    by_lo = lo_y + np.float32(y) * s_y - m_y
+                    by_hi = lo_y + np.float32(y + 1) * s_y + m_y
                     for x in range(x0, x1 + 1):
                         if fill and masked:
                             hit = (bits >> k) & 1 == 1
                         elif every:
                             hit = True
                         else:
-                            b_lo[0] = lo[0] + np.float32(x) * size[0] - margin[0]
-                            b_hi[0] = lo[0] + np.float32(x + 1) * size[0] + margin[0]
-                            hit = triangle_box_overlap(tri, p, b_lo, b_hi)
+                            bx_lo = lo_x + np.float32(x) * s_x - m_x
+                            bx_hi = lo_x + np.float32(x + 1) * s_x + m_x
+                            hit = separating_axes_of_box(
+                                tri, p, bx_lo, by_lo, bz_lo, bx_hi, by_hi, bz_hi, True
+                            )
                             if masked and hit:
                                 bits |= np.int64(1) << k
                         if hit:
