@@ -240,12 +240,12 @@ def _pairs(tri, lo, size, margin, res, first, last, counts, masks, offsets, keys
     m_x, m_y, m_z = margin[0], margin[1], margin[2]
     for c in prange(n_chunks):
         for p in range(c * PRIM_CHUNK, min(n, (c + 1) * PRIM_CHUNK)):
-            x0 = first[p, 0]
-            y0 = first[p, 1]
-            z0 = first[p, 2]
-            x1 = last[p, 0]
-            y1 = last[p, 1]
-            z1 = last[p, 2]
+            x0 = np.int64(first[p, 0])
+            y0 = np.int64(first[p, 1])
+            z0 = np.int64(first[p, 2])
+            x1 = np.int64(last[p, 0])
+            y1 = np.int64(last[p, 1])
+            z1 = np.int64(last[p, 2])
             slot = offsets[p] if fill else 0
             if x0 == x1 and y0 == y1 and z0 == z1:
                 # Strictly inside one cell: it overlaps that cell.
@@ -331,8 +331,10 @@ def build_uniform(
         )
     res = grid_resolution(extent, wanted)
     budget = min(options.max_refs, max(int(options.max_refs_per_prim * n), n))
-    first = np.empty((n, 3), dtype=INDEX)
-    last = np.empty((n, 3), dtype=INDEX)
+    # Cell coordinates fit int16 (MAX_RES_AXIS); counts and offsets int32 (the pairs
+    # are checked against int32 below): less fresh memory to fault in per build.
+    first = np.empty((n, 3), dtype=np.int16)
+    last = np.empty((n, 3), dtype=np.int16)
     while True:
         inv = (res / extent).astype(np.float64)
         margin = cell_margin(lo, hi, res)
@@ -352,7 +354,7 @@ def build_uniform(
     size = ((hi - lo) / res).astype(REAL)
     phases["bounds"] = (time.perf_counter() - t0) * 1e3
     t1 = time.perf_counter()
-    counts = np.empty(n, dtype=np.int64)
+    counts = np.empty(n, dtype=np.int32)
     masks = np.empty(n, dtype=np.int64)
     # Cell ids as int32 where they fit (always below max_cells' default): less to move.
     key_type = np.int32 if n_cells <= 2**31 - 1 else np.int64
@@ -362,10 +364,10 @@ def build_uniform(
            False)  # fmt: skip
     phases["count"] = (time.perf_counter() - t1) * 1e3
     t1 = time.perf_counter()
-    offsets = np.empty(n, dtype=np.int64)
+    offsets = np.empty(n, dtype=np.int32)
     offsets[0] = 0
     np.cumsum(counts[:-1], out=offsets[1:])
-    n_refs = int(offsets[-1] + counts[-1])
+    n_refs = int(offsets[-1]) + int(counts[-1])
     keys = np.empty(n_refs, dtype=key_type)
     values = np.empty(n_refs, dtype=np.int32)
     _pairs(tri, lo, size, margin, res, first, last, counts, masks, offsets, keys, values, True)
