@@ -7,7 +7,7 @@
    with the exact overlap test, sort, cell ranges).
 2. Each top cell gets its own resolution from its reference count ``n_c`` and its box
    with the leaf density λ2 (default 1.2): Slusallek's formula over the top cell
-   (:func:`~rayaccel.grid.builders.uniform.grid_resolution`); an empty top cell gets
+   (:func:`~rayaccel.grid.builders.uniform.resolutions`); an empty top cell gets
    one empty leaf. A prefix sum of the sub-grid sizes gives each top cell its first
    leaf cell.
 3. *The whole leaf level at once*: every (top cell, primitive) pair of the top level
@@ -42,6 +42,7 @@ from rayaccel.grid.builders.uniform import (
     UniformGridOptions,
     build_uniform,
     check_density,
+    resolutions,
 )
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import MAX_RES_AXIS, SKIP_DISTANCE, cell_margin
@@ -83,48 +84,9 @@ class TwoLevelOptions:
         UniformGridOptions(1.0, self.max_cells, self.max_refs, self.max_refs_per_prim)
 
 
-@cpu_kernel()
-def _sub_resolutions(size, counts, density, max_axis, out):
-    """Fill ``out`` with Slusallek's resolution of a ``size`` box per reference count.
-
-    Per top cell: ``wanted = max(λ2·count, 1)`` cells, shared by the free axes as
-    ``size · (wanted / volume)^(1/k)``; an axis that would get fewer than one cell
-    gets one and leaves the others (at most three rounds); then rounded and clamped
-    to ``[1, max_axis]``, and one cell for an empty top cell.
-    """
-    res = np.empty(3, dtype=np.float64)
-    for c in range(counts.shape[0]):
-        wanted = max(density * np.float64(counts[c]), 1.0)
-        free = 7
-        for _ in range(3):
-            k = 0
-            volume = 1.0
-            for a in range(3):
-                if (free >> a) & 1:
-                    k += 1
-                    volume *= size[a]
-            scale = (wanted / volume) ** (1.0 / max(k, 1))
-            small = 0
-            for a in range(3):
-                res[a] = size[a] * scale if (free >> a) & 1 else 1.0
-                if (free >> a) & 1 and res[a] < 1.0:
-                    small |= 1 << a
-            if small == 0:
-                break
-            free &= ~small
-        for a in range(3):
-            r = np.floor(res[a] + 0.5)
-            out[c, a] = 1 if counts[c] == 0 else np.int32(min(max(r, 1.0), max_axis))
-
-
 def sub_resolutions(size: np.ndarray, counts: np.ndarray, density: float) -> np.ndarray:
     """Return ``(n_top, 3)`` int32 leaf resolutions: Slusallek's formula per top cell."""
-    out = np.empty((counts.shape[0], 3), dtype=INDEX)
-    _sub_resolutions(
-        np.asarray(size, dtype=np.float64), np.ascontiguousarray(counts), float(density),
-        float(MAX_RES_AXIS), out,
-    )  # fmt: skip
-    return out
+    return resolutions(size, counts, density)
 
 
 #: ``_leaf_refs`` modes (see there).

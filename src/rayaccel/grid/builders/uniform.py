@@ -119,28 +119,60 @@ def grid_box(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return g_lo.astype(REAL), g_hi.astype(REAL)
 
 
+@cpu_kernel()
+def _resolutions(size, counts, density, max_axis, out):
+    """Fill ``out[c]`` with the resolution of a ``size`` box for ``density·counts[c]`` cells.
+
+    Slusallek's formula (see the module docstring): ``wanted = max(density·count, 1)``
+    cells shared by the free axes as ``size · (wanted / volume)^(1/k)``; an axis that
+    would get fewer than one cell gets one and leaves the others (at most three
+    rounds); then rounded and clamped to ``[1, max_axis]``, and one cell for a count
+    of 0. One loop serves the uniform grid (one box) and the two-level grid's
+    sub-grids (one box per top cell, ``two_level.sub_resolutions``).
+    """
+    res = np.empty(3, dtype=np.float64)
+    for c in range(counts.shape[0]):
+        wanted = max(density * np.float64(counts[c]), 1.0)
+        free = 7
+        for _ in range(3):
+            k = 0
+            volume = 1.0
+            for a in range(3):
+                if (free >> a) & 1:
+                    k += 1
+                    volume *= size[a]
+            scale = (wanted / volume) ** (1.0 / max(k, 1))
+            small = 0
+            for a in range(3):
+                res[a] = size[a] * scale if (free >> a) & 1 else 1.0
+                if (free >> a) & 1 and res[a] < 1.0:
+                    small |= 1 << a
+            if small == 0:
+                break
+            free &= ~small
+        for a in range(3):
+            r = np.floor(res[a] + 0.5)
+            out[c, a] = 1 if counts[c] == 0 else np.int32(min(max(r, 1.0), max_axis))
+
+
+def resolutions(size: np.ndarray, counts: np.ndarray, density: float) -> np.ndarray:
+    """Return ``(len(counts), 3)`` int32 resolutions of a ``size`` box, one per count."""
+    out = np.empty((counts.shape[0], 3), dtype=INDEX)
+    _resolutions(
+        np.asarray(size, dtype=np.float64), np.ascontiguousarray(counts, dtype=INDEX),
+        float(density), float(MAX_RES_AXIS), out,
+    )  # fmt: skip
+    return out
+
+
 def grid_resolution(extent: np.ndarray, n_cells_wanted: float) -> np.ndarray:
     """Return ``(3,)`` int32 cells per axis for about ``n_cells_wanted`` cubic-ish cells.
 
     Slusallek's ``R_a = e_a · cbrt(λn / V)``; axes that would get fewer than one cell get
     one and the scale is re-solved over the others (see the module docstring).
     """
-    e = np.asarray(extent, dtype=np.float64)
-    free = np.ones(3, dtype=bool)
-    res = np.ones(3, dtype=np.float64)
-    for _ in range(3):
-        k = int(free.sum())
-        if k == 0:
-            break
-        volume = float(np.prod(e[free]))
-        scale = (max(n_cells_wanted, 1.0) / volume) ** (1.0 / k)
-        res = np.where(free, e * scale, 1.0)
-        small = free & (res < 1.0)
-        if not small.any():
-            break
-        free &= ~small
-    out = np.clip(np.floor(res + 0.5), 1, MAX_RES_AXIS)
-    return out.astype(INDEX)
+    one: np.ndarray = resolutions(extent, np.ones(1, dtype=INDEX), n_cells_wanted)[0]
+    return one
 
 
 def _physical_memory() -> int:
