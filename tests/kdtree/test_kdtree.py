@@ -17,12 +17,19 @@ import rayaccel
 import reference
 from rayaccel import registry
 from rayaccel.errors import InvalidInputError, StructureInvariantError
+from rayaccel.kdtree.builders import sweep
 from rayaccel.kdtree.layouts.kdtree import (
     LEAF_AXIS,
     MAX_DEPTH,
     KdTree,
     max_depth_for,
     nodes_with_leaf_ranges,
+)
+from rayaccel.kdtree.layouts.node_order import (
+    BLOCK_BYTES,
+    PAIRS_PER_BLOCK,
+    block_aligned_copy,
+    blocked_node_order,
 )
 from rayaccel.kdtree.traverse.ropes import rope_layout
 from rayaccel.rays.batch import RayBatch
@@ -216,12 +223,52 @@ def _canonical(kd: KdTree, node: int = 0) -> tuple:
     return (bits & 3, float(kd.nodes[node, 0]), _canonical(kd, child), _canonical(kd, child + 1))
 
 
+def test_blocked_node_order_depends_on_the_tree_alone(sphere_accels):
+    """Any numbering of a tree's child pairs comes out as the builder's blocked order: the
+    same tree, the root's children at 1 and 2, a pair's children within the 128-byte
+    treelets below it; the trace layout's copy puts node 1 on a 128-byte boundary."""
+    kd = sphere_accels["kdtree.sah", ()].structure
+    words = kd.nodes.view(np.int32)
+    n_pairs = (kd.n_nodes - 1) // 2
+    perm = np.random.default_rng(5).permutation(n_pairs)
+    new = np.concatenate([[0], (1 + 2 * perm[:, None] + np.arange(2)).reshape(-1)])
+    shuffled = np.empty_like(kd.nodes)
+    shuffled[new] = kd.nodes
+    inner = (kd.node_bits & 3) != LEAF_AXIS
+    shuffled.view(np.int32)[new[inner], 1] = (new[kd.node_bits[inner] >> 2] << 2) | (
+        kd.node_bits[inner] & 3
+    )
+    moved = KdTree(shuffled, kd.leaf_first, kd.leaf_count, kd.prim_index, kd.lo, kd.hi, kd.n_prims)
+    assert _canonical(moved) == _canonical(kd)
+    assert not np.array_equal(shuffled, kd.nodes)
+    assert np.array_equal(blocked_node_order(shuffled), kd.nodes)
+    assert words[0, 1] >> 2 == 1
+    # The first treelet holds the root's children and the pairs below them, breadth first.
+    first_pairs = [1]
+    for pair in first_pairs:
+        for node in (pair, pair + 1):
+            if (words[node, 1] & 3) != LEAF_AXIS and len(first_pairs) < PAIRS_PER_BLOCK:
+                first_pairs.append(int(words[node, 1] >> 2))
+    assert first_pairs == list(range(1, 1 + 2 * len(first_pairs), 2))
+    copy = block_aligned_copy(kd.nodes)
+    assert np.array_equal(copy, kd.nodes)
+    assert (copy.ctypes.data + copy.strides[0]) % BLOCK_BYTES == 0
+
+
 @pytest.mark.parametrize("key", ["kdtree.sah", "kdtree.median"])
-def test_parallel_build_is_the_serial_tree(key):
-    """Frontier subtrees built on a thread pool give the serial build's tree (up to
-    node numbering) and the same arrays for every thread count."""
+def test_parallel_build_is_the_serial_tree(key, monkeypatch):
+    """Frontier subtrees built on a thread pool give the serial build's tree and the
+    same arrays for every thread count."""
     mesh = reference.icosphere(3)
     serial = rayaccel.build(mesh, key, parallel_threshold=0).structure
+    frontier_builds = []
+    build_frontier = sweep._build_frontier
+
+    def counted(*args):
+        frontier_builds.append(1)
+        return build_frontier(*args)
+
+    monkeypatch.setattr(sweep, "_build_frontier", counted)
     threads = numba.get_num_threads()
     trees = []
     for count in sorted({1, threads, 2}):
@@ -230,16 +277,12 @@ def test_parallel_build_is_the_serial_tree(key):
             trees.append(rayaccel.build(mesh, key, parallel_threshold=16).structure)
         finally:
             numba.set_num_threads(threads)
-    for tree in trees[1:]:
+    assert len(frontier_builds) == len(trees)  # the frontier was used
+    trees[0].validate(mesh.triangles())
+    # The blocked node order numbers the nodes by the tree's shape alone.
+    for tree in trees:
         for name in ("nodes", "leaf_first", "leaf_count", "prim_index"):
-            assert np.array_equal(getattr(tree, name), getattr(trees[0], name)), name
-    parallel = trees[0]
-    parallel.validate(mesh.triangles())
-    assert not np.array_equal(parallel.nodes, serial.nodes)  # the frontier was used
-    assert (parallel.n_nodes, parallel.n_leaves, parallel.n_refs) == (
-        serial.n_nodes, serial.n_leaves, serial.n_refs,
-    )  # fmt: skip
-    assert _canonical(parallel) == _canonical(serial)
+            assert np.array_equal(getattr(tree, name), getattr(serial, name)), name
 
 
 def test_perfect_splits_pad_crossings_that_round_near_zero():

@@ -60,6 +60,9 @@ hands them (with a copy of their events) to a thread pool, one kernel call per
 subtree, largest first (:func:`_build_frontier`); the subtrees are spliced in a
 fixed order, so the tree is the same for every thread count, and the same as the
 serial build's up to node numbering (each node's plane depends only on its events).
+The finished tree is renumbered into cache blocks
+(:func:`rayaccel.kdtree.layouts.node_order.blocked_node_order`), which makes the
+numbering the same too.
 
 Memory. Event lists live in one buffer used as a stack: a split writes the right
 child's list, then the left child's, after its own; the left child (popped first)
@@ -78,6 +81,7 @@ from numba import prange
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.dtypes import REAL
 from rayaccel.kdtree.layouts.kdtree import LEAF_AXIS, KdTree, max_depth_for
+from rayaccel.kdtree.layouts.node_order import blocked_node_order
 from rayaccel.kernels.box_grow import store_box
 from rayaccel.kernels.clip import clip_triangle_box, polygon_bounds
 from rayaccel.kernels.radix_sort import radix_sort
@@ -233,7 +237,7 @@ def build_sweep(mesh: TriangleMesh, params: SweepParams) -> KdTree:
     nodes[:, 0] = split
     nodes.view(np.int32)[:, 1] = bits
     return KdTree(
-        nodes=nodes,
+        nodes=blocked_node_order(nodes),
         leaf_first=leaf_first,
         leaf_count=leaf_count,
         prim_index=prim_index,
