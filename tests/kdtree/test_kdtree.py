@@ -242,6 +242,8 @@ def test_blocked_node_order_depends_on_the_tree_alone(sphere_accels):
     assert _canonical(moved) == _canonical(kd)
     assert not np.array_equal(shuffled, kd.nodes)
     assert np.array_equal(blocked_node_order(shuffled), kd.nodes)
+    with pytest.raises(StructureInvariantError, match="2 kd nodes are not reached"):
+        blocked_node_order(np.concatenate([kd.nodes, kd.nodes[-2:]]))
     assert words[0, 1] >> 2 == 1
     # The first treelet holds the root's children and the pairs below them, breadth first.
     first_pairs = [1]

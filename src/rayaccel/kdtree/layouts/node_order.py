@@ -4,11 +4,10 @@ A builder emits the nodes in the order it splits them, so a node's children's pa
 may lie megabytes away from it (the kitchen's tree has 83 MB of nodes, more than the
 L3 cache). :func:`blocked_node_order` renumbers the tree into treelets: starting from
 a pair of children, the pairs below it are taken breadth first until a treelet holds
-:data:`PAIRS_PER_BLOCK` pairs (128 bytes, two cache lines that the hardware's
-adjacent-line prefetcher fetches together), the treelets follow each other depth
-first, and a treelet's overflowing children start the treelets after it. A walk
-that enters a treelet at its top pair then finds the next two or three levels in the
-lines it has already loaded (a fixed-block form of the cache-efficient layouts of
+:data:`PAIRS_PER_BLOCK` pairs (128 bytes, two cache lines), the treelets follow
+each other depth first, and a treelet's overflowing children start the treelets
+after it. A walk that enters a treelet at its top pair then finds the next two or
+three levels in the lines it has just loaded (a fixed-block form of the cache-efficient layouts of
 Yoon & Manocha 2006, "Cache-Efficient Layouts of Bounding Volume Hierarchies"). The
 root stays at node 0 and its children at 1 and 2; children stay adjacent, so every
 invariant of the canonical layout holds and every derived layout follows the new
@@ -25,6 +24,7 @@ from numba import prange
 
 from rayaccel._jit import cpu_kernel
 from rayaccel.dtypes import FloatArray
+from rayaccel.errors import StructureInvariantError
 
 #: Child pairs (16 bytes each) per treelet: 128 bytes.
 PAIRS_PER_BLOCK = 8
@@ -33,7 +33,7 @@ BLOCK_BYTES = 16 * PAIRS_PER_BLOCK
 
 @cpu_kernel()
 def _blocked_positions(bits, pairs_per_block):
-    """Return each node's index in the blocked order (see the module docstring)."""
+    """Return each node's index in the blocked order and the number of nodes placed."""
     n = bits.shape[0]
     new = np.empty(n, dtype=np.int32)
     new[0] = 0
@@ -72,7 +72,7 @@ def _blocked_positions(bits, pairs_per_block):
         for k in range(n_over - 1, -1, -1):
             stack[sp] = overflow[k]
             sp += 1
-    return new
+    return new, pos
 
 
 @cpu_kernel(parallel=True)
@@ -96,7 +96,11 @@ def blocked_node_order(nodes: FloatArray) -> FloatArray:
     tables and references are unchanged.
     """
     words = nodes.view(np.int32)
-    new = _blocked_positions(np.ascontiguousarray(words[:, 1]), PAIRS_PER_BLOCK)
+    new, placed = _blocked_positions(np.ascontiguousarray(words[:, 1]), PAIRS_PER_BLOCK)
+    if placed != nodes.shape[0]:
+        raise StructureInvariantError(
+            f"{nodes.shape[0] - placed} kd nodes are not reached from the root"
+        )
     out: FloatArray = _renumbered(words, new).view(nodes.dtype)
     return out
 
