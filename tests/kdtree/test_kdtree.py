@@ -26,10 +26,10 @@ from rayaccel.kdtree.layouts.kdtree import (
     nodes_with_leaf_ranges,
 )
 from rayaccel.kdtree.layouts.node_order import (
-    BLOCK_BYTES,
+    LINE_BYTES,
     PAIRS_PER_BLOCK,
-    block_aligned_copy,
     blocked_node_order,
+    line_aligned_copy,
 )
 from rayaccel.kdtree.traverse.ropes import rope_layout
 from rayaccel.rays.batch import RayBatch
@@ -225,8 +225,8 @@ def _canonical(kd: KdTree, node: int = 0) -> tuple:
 
 def test_blocked_node_order_depends_on_the_tree_alone(sphere_accels):
     """Any numbering of a tree's child pairs comes out as the builder's blocked order: the
-    same tree, the root's children at 1 and 2, a pair's children within the 128-byte
-    treelets below it; the trace layout's copy puts node 1 on a 128-byte boundary."""
+    same tree, the root's children at 1 and 2, the first treelet breadth first; the trace
+    layout's copy puts node 1 at the start of a cache line."""
     kd = sphere_accels["kdtree.sah", ()].structure
     words = kd.nodes.view(np.int32)
     n_pairs = (kd.n_nodes - 1) // 2
@@ -252,9 +252,9 @@ def test_blocked_node_order_depends_on_the_tree_alone(sphere_accels):
             if (words[node, 1] & 3) != LEAF_AXIS and len(first_pairs) < PAIRS_PER_BLOCK:
                 first_pairs.append(int(words[node, 1] >> 2))
     assert first_pairs == list(range(1, 1 + 2 * len(first_pairs), 2))
-    copy = block_aligned_copy(kd.nodes)
+    copy = line_aligned_copy(kd.nodes)
     assert np.array_equal(copy, kd.nodes)
-    assert (copy.ctypes.data + copy.strides[0]) % BLOCK_BYTES == 0
+    assert (copy.ctypes.data + copy.strides[0]) % LINE_BYTES == 0
 
 
 @pytest.mark.parametrize("key", ["kdtree.sah", "kdtree.median"])

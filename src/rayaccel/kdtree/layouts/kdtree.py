@@ -35,7 +35,7 @@ import numpy as np
 from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel.dtypes import INDEX, REAL, FloatArray, IntArray
 from rayaccel.errors import InvalidInputError, StructureInvariantError
-from rayaccel.kdtree.layouts.node_order import block_aligned_copy
+from rayaccel.kdtree.layouts.node_order import line_aligned_copy
 from rayaccel.kernels.box_grow import load_box, store_box
 from rayaccel.kernels.overlap import triangle_box_overlap
 from rayaccel.kernels.structure_checks import check_prims_listed
@@ -564,7 +564,7 @@ def nodes_with_leaf_ranges(kd: KdTree) -> FloatArray:
     """Return a copy of ``kd.nodes`` whose leaves read ``(first, (count << 2) | 3)``."""
     if int(kd.leaf_count.max(initial=0)) >= 2**29:
         raise StructureInvariantError("a kd leaf lists 2**29 or more triangles")
-    nodes = block_aligned_copy(kd.nodes)
+    nodes = line_aligned_copy(kd.nodes)
     words = nodes.view(np.int32)
     leaf_nodes = np.flatnonzero((words[:, 1] & 3) == LEAF_AXIS)
     leaf = words[leaf_nodes, 1] >> 2

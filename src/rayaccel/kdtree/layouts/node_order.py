@@ -4,17 +4,18 @@ A builder emits the nodes in the order it splits them, so a node's children's pa
 may lie megabytes away from it (the kitchen's tree has 83 MB of nodes, more than the
 L3 cache). :func:`blocked_node_order` renumbers the tree into treelets: starting from
 a pair of children, the pairs below it are taken breadth first until a treelet holds
-:data:`PAIRS_PER_BLOCK` pairs (128 bytes, two cache lines), the treelets follow
+:data:`PAIRS_PER_BLOCK` pairs (256 bytes, four cache lines), the treelets follow
 each other depth first, and a treelet's overflowing children start the treelets
-after it. A walk that enters a treelet at its top pair then finds the next two or
-three levels in the lines it has just loaded (a fixed-block form of the cache-efficient layouts of
-Yoon & Manocha 2006, "Cache-Efficient Layouts of Bounding Volume Hierarchies"). The
+after it. A walk that enters a treelet at its top pair finds the next three or four
+levels within 256 bytes of it, in lines it has loaded or that the hardware fetches
+alongside (a fixed-block form of the cache-efficient layouts of Yoon & Manocha 2006,
+"Cache-Efficient Layouts of Bounding Volume Hierarchies"). The
 root stays at node 0 and its children at 1 and 2; children stay adjacent, so every
 invariant of the canonical layout holds and every derived layout follows the new
 numbering.
 
-:func:`block_aligned_copy` copies the nodes with node 1 at a 128-byte boundary, so
-every pair starts at a multiple of 16 bytes and never straddles two cache lines.
+:func:`line_aligned_copy` copies the nodes with node 1 at a cache line's start, so
+every pair starts at a multiple of 16 bytes and never straddles two lines.
 """
 
 from __future__ import annotations
@@ -26,9 +27,9 @@ from rayaccel._jit import cpu_kernel
 from rayaccel.dtypes import FloatArray
 from rayaccel.errors import StructureInvariantError
 
-#: Child pairs (16 bytes each) per treelet: 128 bytes.
-PAIRS_PER_BLOCK = 8
-BLOCK_BYTES = 16 * PAIRS_PER_BLOCK
+#: Child pairs (16 bytes each) per treelet: 256 bytes (docs/performance.md, ``kdtree.stack``).
+PAIRS_PER_BLOCK = 16
+LINE_BYTES = 64
 
 
 @cpu_kernel()
@@ -90,7 +91,7 @@ def _renumbered(words, new):
 
 
 def blocked_node_order(nodes: FloatArray) -> FloatArray:
-    """Return ``nodes`` (canonical ``(n, 2)`` rows) renumbered into treelets of 128 bytes.
+    """Return ``nodes`` (canonical ``(n, 2)`` rows) renumbered into treelets of 256 bytes.
 
     Inner nodes' child indices are rewritten; leaves keep their leaf index, so the leaf
     tables and references are unchanged.
@@ -105,11 +106,11 @@ def blocked_node_order(nodes: FloatArray) -> FloatArray:
     return out
 
 
-def block_aligned_copy(nodes: FloatArray) -> FloatArray:
-    """Return a copy of ``nodes`` whose node 1 starts a :data:`BLOCK_BYTES` boundary."""
+def line_aligned_copy(nodes: FloatArray) -> FloatArray:
+    """Return a copy of ``nodes`` whose node 1 starts a :data:`LINE_BYTES` cache line."""
     row = nodes.itemsize * 2
-    buffer = np.empty(nodes.nbytes + BLOCK_BYTES + row, dtype=np.uint8)
-    skip = (-(buffer.ctypes.data + row)) % BLOCK_BYTES
+    buffer = np.empty(nodes.nbytes + LINE_BYTES + row, dtype=np.uint8)
+    skip = (-(buffer.ctypes.data + row)) % LINE_BYTES
     out: FloatArray = buffer[skip : skip + nodes.nbytes].view(nodes.dtype).reshape(nodes.shape)
     out[...] = nodes
     return out
