@@ -244,6 +244,14 @@ def test_blocked_node_order_depends_on_the_tree_alone(sphere_accels):
     assert np.array_equal(blocked_node_order(shuffled), kd.nodes)
     with pytest.raises(StructureInvariantError, match="2 kd nodes are not reached"):
         blocked_node_order(np.concatenate([kd.nodes, kd.nodes[-2:]]))
+    looped = kd.nodes.copy()
+    inner_nodes = np.flatnonzero(inner)
+    looped.view(np.int32)[inner_nodes[-1], 1] = (1 << 2) | 0  # back to the root's children
+    with pytest.raises(StructureInvariantError, match="not a tree"):
+        blocked_node_order(looped)
+    looped.view(np.int32)[inner_nodes[-1], 1] = (kd.n_nodes << 2) | 0  # past the end
+    with pytest.raises(StructureInvariantError, match="not a tree"):
+        blocked_node_order(looped)
     assert words[0, 1] >> 2 == 1
     # The first treelet holds the root's children and the pairs below them, breadth first.
     first_pairs = [1]

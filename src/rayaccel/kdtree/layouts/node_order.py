@@ -34,7 +34,12 @@ LINE_BYTES = 64
 
 @cpu_kernel()
 def _blocked_positions(bits, pairs_per_block):
-    """Return each node's index in the blocked order and the number of nodes placed."""
+    """Return each node's index in the blocked order and the number of nodes placed.
+
+    The count is -1 when a child index lies outside the array or the walk finds more
+    pairs than there are nodes (a node reached twice), so a corrupt tree stops here
+    instead of reading or writing out of bounds.
+    """
     n = bits.shape[0]
     new = np.empty(n, dtype=np.int32)
     new[0] = 0
@@ -59,12 +64,17 @@ def _blocked_positions(bits, pairs_per_block):
             for node in range(pair, pair + 2):
                 word = bits[node]
                 if (word & 3) != 3:
+                    child = word >> 2
+                    if child < 1 or child + 1 >= n:
+                        return new, -1  # a child outside the array
                     if m < pairs_per_block:
-                        treelet[m] = word >> 2
+                        treelet[m] = child
                         m += 1
                     else:
-                        overflow[n_over] = word >> 2
+                        overflow[n_over] = child
                         n_over += 1
+        if pos + 2 * m > n or sp + n_over > stack.shape[0]:
+            return new, -1  # more pairs than nodes: not a tree
         for k in range(m):
             new[treelet[k]] = pos
             new[treelet[k] + 1] = pos + 1
@@ -98,6 +108,10 @@ def blocked_node_order(nodes: FloatArray) -> FloatArray:
     """
     words = nodes.view(np.int32)
     new, placed = _blocked_positions(np.ascontiguousarray(words[:, 1]), PAIRS_PER_BLOCK)
+    if placed < 0:
+        raise StructureInvariantError(
+            "kd nodes are reached twice from the root or name a child outside the array: not a tree"
+        )
     if placed != nodes.shape[0]:
         raise StructureInvariantError(
             f"{nodes.shape[0] - placed} kd nodes are not reached from the root"
