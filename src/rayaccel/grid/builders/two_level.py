@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_inline, cpu_kernel
+from rayaccel._jit import cpu_kernel
 from rayaccel._variant import register
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
@@ -41,12 +41,14 @@ from rayaccel.grid.builders.uniform import (
     PRIM_CHUNK,
     UniformGridOptions,
     build_uniform,
+    candidate_hit,
+    cell_interval,
+    cell_span,
     check_density,
     resolutions,
 )
 from rayaccel.grid.layouts.two_level import TwoLevelGrid
 from rayaccel.grid.layouts.uniform import MAX_RES_AXIS, SKIP_DISTANCE, cell_margin
-from rayaccel.kernels.overlap import separating_axes_of_box
 from rayaccel.scene.mesh import TriangleMesh
 
 
@@ -98,25 +100,6 @@ FILL = 3
 DEFERRED = -1
 #: Rounds of halving sub-grid resolutions before the leaf level fits its reference budget.
 MAX_SHRINK_ROUNDS = 64
-
-
-def _leaf_span_py(tri, p, a, corner, inv, m2, r):
-    """Return the leaves ``first, last`` along axis ``a`` that triangle ``p``'s box spans.
-
-    The box is widened by twice the margin ``m2 / 2``; ``corner`` is the top cell's
-    lower corner on that axis, ``inv`` one over the leaf size, ``r`` the leaves along it.
-    The third value says whether the widened box lies within one leaf, unclamped.
-    """
-    t_lo = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
-    t_hi = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
-    j0 = np.int64(np.floor((np.float64(t_lo) - m2 - corner) * inv))
-    j1 = np.int64(np.floor((np.float64(t_hi) + m2 - corner) * inv))
-    first = min(max(j0, 0), r - 1)
-    last = min(max(j1, 0), r - 1)
-    return first, last, first == last and j0 >= 0 and j1 < r
-
-
-_leaf_span = cpu_inline(_leaf_span_py)
 
 
 @cpu_kernel(parallel=True)
@@ -177,9 +160,9 @@ def _leaf_refs(
                 if mode == COUNT_REST and counts[i] != DEFERRED:
                     continue
                 if mode in (BOUND, COUNT):
-                    x0, x1, x_one = _leaf_span(tri, p, 0, lo_x, inv_x, m2_x, r_x)
-                    y0, y1, y_one = _leaf_span(tri, p, 1, lo_y, inv_y, m2_y, r_y)
-                    z0, z1, z_one = _leaf_span(tri, p, 2, lo_z, inv_z, m2_z, r_z)
+                    x0, x1, x_one = cell_span(tri, p, 0, lo_x, inv_x, m2_x, r_x)
+                    y0, y1, y_one = cell_span(tri, p, 1, lo_y, inv_y, m2_y, r_y)
+                    z0, z1, z_one = cell_span(tri, p, 2, lo_z, inv_z, m2_z, r_z)
                     span[i, 0] = x0
                     span[i, 1] = y0
                     span[i, 2] = z0
@@ -213,24 +196,14 @@ def _leaf_refs(
                 k = 0
                 n_hit = 0
                 for z in range(z0, z1 + 1):
-                    bz_lo = lo_z + np.float32(z) * s_z - m_z
-                    bz_hi = lo_z + np.float32(z + 1) * s_z + m_z
+                    bz_lo, bz_hi = cell_interval(lo_z, s_z, m_z, z)
                     for y in range(y0, y1 + 1):
-                        by_lo = lo_y + np.float32(y) * s_y - m_y
-                        by_hi = lo_y + np.float32(y + 1) * s_y + m_y
+                        by_lo, by_hi = cell_interval(lo_y, s_y, m_y, y)
                         for x in range(x0, x1 + 1):
-                            if from_bits:
-                                hit = (bits >> k) & 1 == 1
-                            elif every:
-                                hit = True
-                            else:
-                                bx_lo = lo_x + np.float32(x) * s_x - m_x
-                                bx_hi = lo_x + np.float32(x + 1) * s_x + m_x
-                                hit = separating_axes_of_box(
-                                    tri, p, bx_lo, by_lo, bz_lo, bx_hi, by_hi, bz_hi, True
-                                )
-                                if masked and hit:
-                                    bits |= np.int64(1) << k
+                            hit, bits = candidate_hit(
+                                tri, p, x, by_lo, bz_lo, by_hi, bz_hi, lo_x, s_x, m_x, k, bits,
+                                from_bits, every, masked,
+                            )  # fmt: skip
                             if hit:
                                 leaf = base + x + r_x * (y + r_y * z)
                                 if fill:

@@ -28,7 +28,6 @@ Cost O(n + pairs + cells).
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import dataclass
@@ -36,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import prange
 
-from rayaccel._jit import cpu_kernel
+from rayaccel._jit import cpu_inline, cpu_kernel
 from rayaccel._variant import register
 from rayaccel.dtypes import INDEX, REAL
 from rayaccel.errors import InvalidInputError
@@ -223,6 +222,26 @@ def _triangles_and_bounds(vertices, faces):
     return tri, bounds
 
 
+def cell_span_py(tri, p, a, lo, inv, m2, r):
+    """Return the cells ``first, last`` along axis ``a`` that triangle ``p``'s box spans.
+
+    The box is widened by ``m2`` (twice the cell margin); ``lo`` is the grid's (or top
+    cell's) lower corner on that axis, ``inv`` one over the cell size, ``r`` the cells
+    along it. The third value says whether the widened box lies within one cell,
+    unclamped. Serves the uniform grid's cell ranges and the two-level grid's leaf spans.
+    """
+    t_lo = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+    t_hi = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
+    j0 = np.int64(np.floor((np.float64(t_lo) - m2 - lo) * inv))
+    j1 = np.int64(np.floor((np.float64(t_hi) + m2 - lo) * inv))
+    first = min(max(j0, 0), r - 1)
+    last = min(max(j1, 0), r - 1)
+    return first, last, first == last and j0 >= 0 and j1 < r
+
+
+cell_span = cpu_inline(cell_span_py)
+
+
 @cpu_kernel(parallel=True)
 def _prim_boxes(tri, lo, inv, margin, res, first, last):
     """Write each triangle's cell range into ``first``/``last``; return their total cells.
@@ -235,12 +254,7 @@ def _prim_boxes(tri, lo, inv, margin, res, first, last):
     for p in prange(n):
         count = np.int64(1)
         for a in range(3):
-            t_lo = min(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
-            t_hi = max(tri[p, 0, a], tri[p, 1, a], tri[p, 2, a])
-            c0 = math.floor((np.float64(t_lo) - 2.0 * margin[a] - lo[a]) * inv[a])
-            c1 = math.floor((np.float64(t_hi) + 2.0 * margin[a] - lo[a]) * inv[a])
-            c0 = min(max(c0, 0), res[a] - 1)
-            c1 = min(max(c1, 0), res[a] - 1)
+            c0, c1, _ = cell_span(tri, p, a, lo[a], inv[a], 2.0 * margin[a], np.int64(res[a]))
             first[p, a] = c0
             last[p, a] = c1
             count *= c1 - c0 + 1
@@ -251,6 +265,37 @@ def _prim_boxes(tri, lo, inv, margin, res, first, last):
 #: Candidate cells up to which the count pass keeps its overlap results as bits, so the
 #: fill pass writes the pairs without testing again.
 MASK_BITS = 64
+
+
+def cell_interval_py(lo, size, margin, i):
+    """Return cell ``i``'s extent on one axis, widened by ``margin`` on both sides."""
+    return lo + np.float32(i) * size - margin, lo + np.float32(i + 1) * size + margin
+
+
+def candidate_hit_py(
+    tri, p, x, by_lo, bz_lo, by_hi, bz_hi, lo_x, s_x, m_x, k, bits, from_bits, every, masked,
+):  # fmt: skip
+    """Return ``(hit, bits)``: whether triangle ``p`` overlaps candidate cell ``k``.
+
+    The answer comes from bit ``k`` of ``bits`` (``from_bits``: the count pass kept it),
+    is yes for every candidate (``every``: the count says all overlap), or comes from the
+    exact test against the cell's box (x extent from column ``x``, y and z given), in
+    which case, with ``masked``, a hit sets bit ``k``. The candidate loops of the uniform
+    grid's pairs and the two-level grid's leaf level share it.
+    """
+    if from_bits:
+        return (bits >> k) & 1 == 1, bits
+    if every:
+        return True, bits
+    bx_lo, bx_hi = cell_interval(lo_x, s_x, m_x, x)
+    hit = separating_axes_of_box(tri, p, bx_lo, by_lo, bz_lo, bx_hi, by_hi, bz_hi, True)
+    if masked and hit:
+        bits |= np.int64(1) << k
+    return hit, bits
+
+
+cell_interval = cpu_inline(cell_interval_py)
+candidate_hit = cpu_inline(candidate_hit_py)
 
 
 @cpu_kernel(parallel=True)
@@ -290,28 +335,19 @@ def _pairs(tri, lo, size, margin, res, first, last, counts, masks, offsets, keys
             n_cand = (x1 - x0 + 1) * (y1 - y0 + 1) * (z1 - z0 + 1)
             masked = n_cand <= MASK_BITS
             every = fill and counts[p] == n_cand
-            bits = masks[p] if fill and masked else np.int64(0)
+            from_bits = fill and masked
+            bits = masks[p] if from_bits else np.int64(0)
             k = 0
             # The candidate boxes as scalars (see two_level._leaf_refs).
             for z in range(z0, z1 + 1):
-                bz_lo = lo_z + np.float32(z) * s_z - m_z
-                bz_hi = lo_z + np.float32(z + 1) * s_z + m_z
+                bz_lo, bz_hi = cell_interval(lo_z, s_z, m_z, z)
                 for y in range(y0, y1 + 1):
-                    by_lo = lo_y + np.float32(y) * s_y - m_y
-                    by_hi = lo_y + np.float32(y + 1) * s_y + m_y
+                    by_lo, by_hi = cell_interval(lo_y, s_y, m_y, y)
                     for x in range(x0, x1 + 1):
-                        if fill and masked:
-                            hit = (bits >> k) & 1 == 1
-                        elif every:
-                            hit = True
-                        else:
-                            bx_lo = lo_x + np.float32(x) * s_x - m_x
-                            bx_hi = lo_x + np.float32(x + 1) * s_x + m_x
-                            hit = separating_axes_of_box(
-                                tri, p, bx_lo, by_lo, bz_lo, bx_hi, by_hi, bz_hi, True
-                            )
-                            if masked and hit:
-                                bits |= np.int64(1) << k
+                        hit, bits = candidate_hit(
+                            tri, p, x, by_lo, bz_lo, by_hi, bz_hi, lo_x, s_x, m_x, k, bits,
+                            from_bits, every, masked,
+                        )  # fmt: skip
                         if hit:
                             if fill:
                                 keys[slot] = x + rx * (y + ry * np.int64(z))
