@@ -9,10 +9,9 @@ each other depth first, and a treelet's overflowing children start the treelets
 after it. A walk that enters a treelet at its top pair finds the next three or four
 levels within 256 bytes of it, in lines it has loaded or that the hardware fetches
 alongside (a fixed-block form of the cache-efficient layouts of Yoon & Manocha 2006,
-"Cache-Efficient Layouts of Bounding Volume Hierarchies"). The
-root stays at node 0 and its children at 1 and 2; children stay adjacent, so every
-invariant of the canonical layout holds and every derived layout follows the new
-numbering.
+"Cache-Efficient Layouts of Bounding Volume Hierarchies"). The root stays at node 0
+and its children at 1 and 2; children stay adjacent, so every invariant of the
+canonical layout holds and every derived layout follows the new numbering.
 
 :func:`line_aligned_copy` copies the nodes with node 1 at a cache line's start, so
 every pair starts at a multiple of 16 bytes and never straddles two lines.
