@@ -1,14 +1,18 @@
-"""How fast the irregular grid's walk could be with a voxel map that costs nothing.
+"""How fast the irregular grid's walk could be if it knew every ray's cells in advance.
 
-Each step of ``grid.irregular``'s walk finds the cell of its voxel through the voxel
-map, a chain of three dependent loads (top cell, leaf, cell) into tables larger than
-the caches on big scenes. This script bounds what any faster map (hierarchical,
-compressed, cached) could gain: it records every ray's cells in a first pass, then
-times the same walk (:func:`rayaccel.grid.traverse.irregular.walk_body`, the
-traversal's own body) with the map replaced by a read of the recorded cell, a load
-that depends on nothing before it, against the walk with the map and against
-``bvh2.stack`` on the same rays (median of ``--repeats`` interleaved passes, after
-checking that both walks return the traversal's hits). Rays entering more than
+Each step of ``grid.irregular``'s walk depends on the one before: the exit from the
+current cell's expanded box gives the next voxel, the voxel map (three dependent loads:
+top cell, leaf, cell) gives its cell, and that cell's range and box are loaded before
+the next exit can be computed. This script bounds what any change to that chain (a
+faster or smaller map, links between cells, a cheaper exit) could gain: it records
+every ray's cells in a first pass, then times the same walk
+(:func:`rayaccel.grid.traverse.irregular.walk_body`, the traversal's own body) with
+the map replaced by a read of the recorded cell, a streaming load that depends on no
+earlier step, so that the processor can run ahead across cells. It times that walk,
+the walk with the map and ``bvh2.stack`` on the same rays (median of ``--repeats``
+interleaved passes, after checking that both walks return the traversal's hits). The
+cell tests, the exits and the triangle tests stay as they are, so the recorded walk
+still does all the work the irregular grid's cells ask for. Rays entering more than
 ``--max-cells`` cells look the rest up in the map.
 
     python benchmarks/bound_irregular_map.py --scenes living_room kitchen --views preset yaw40
@@ -30,7 +34,13 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def replay_kernels(max_cells: int):
-    """Return ``(record, replay, layout type)``: the walk recording and replaying cells."""
+    """Return the walks recording and replaying cells, and their layouts' types.
+
+    The recording walk writes ray ``r``'s cells into row ``r`` of ``cells`` (``-1``
+    past its last); the replaying one reads them back from ``flat[offsets[r]:offsets[r +
+    1]]``, each ray's cells side by side in the order the rays are traced, so that
+    the reads stream through memory.
+    """
     from rayaccel._jit import cpu_inline
     from rayaccel.grid.layouts.irregular import IrregularTrace
     from rayaccel.grid.traverse.irregular import map_cell, walk_body
@@ -44,14 +54,17 @@ def replay_kernels(max_cells: int):
         return cell
 
     def replay_cell_py(grid, shift, r, step, cx, cy, cz):
-        if step < max_cells:
-            return np.int64(grid.cells[np.uint64(r), np.uint64(step)])
+        at = grid.offsets[np.uint64(r)] + step
+        if at < grid.offsets[np.uint64(r + 1)]:
+            return np.int64(grid.flat[np.uint64(at)])
         return np.int64(map_cell(grid, shift, r, step, cx, cy, cz))
 
     record = body_kernels(make_mailbox, walk_body(cpu_inline(record_cell_py)))
     replay = body_kernels(make_mailbox, walk_body(cpu_inline(replay_cell_py)))
-    layout = namedtuple("RecordedCells", [*IrregularTrace._fields, "cells"])
-    return record, replay, layout
+    fields = IrregularTrace._fields
+    recording = namedtuple("RecordingCells", [*fields, "cells"])
+    recorded = namedtuple("RecordedCells", [*fields, "offsets", "flat"])
+    return record, replay, recording, recorded
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rays", default="primary,diffuse")
     parser.add_argument("--size", type=int, default=384, help="rays per side of the image")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--max-cells", type=int, default=512)
+    parser.add_argument("--max-cells", type=int, default=64)
     parser.add_argument("--output", type=Path, default=None, help="JSONL file to append to")
     args = parser.parse_args(argv)
     if SHARED_SCENES.is_dir() and not os.environ.get("RAYACCEL_SCENE_PATH"):
@@ -76,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     from rayaccel.cuda.report import kernel_plan
     from rayaccel.trace.run import body_kernels, run_trace
 
-    record, replay, recorded_layout = replay_kernels(args.max_cells)
+    record, replay, recording, recorded = replay_kernels(args.max_cells)
     threads = int(numba.get_num_threads())
     stamp = report.utc_stamp()
     output = args.output or RESULTS / f"bound_irregular_map-{stamp}.jsonl"
@@ -93,23 +106,26 @@ def main(argv: list[str] | None = None) -> int:
         make_scratch, walk_rays, arrays = kernel_plan(grid, "grid.dda")
         walk = body_kernels(make_scratch, walk_rays)
         for view in args.views:
-            name = scene if view == "preset" else f"{scene}@{view}"
             sets = standard_raysets(
-                mesh, name, width=args.size, height=args.size, kinds=parse_kinds(args.rays),
-                accel=bvh,
+                mesh, scene, width=args.size, height=args.size, kinds=parse_kinds(args.rays),
+                accel=bvh, view=None if view == "preset" else view,
             )  # fmt: skip
             for kind, rayset in sets.items():
                 rays, query = rayset.rays, rayset.query
-                cells = np.zeros((rays.n_rays, args.max_cells), np.int32)
-                layout = recorded_layout(*arrays, cells)
+                cells = np.full((rays.n_rays, args.max_cells), -1, np.int32)
                 reference = grid.trace(rays, query=query, traversal="grid.dda", stats=True)
-                for kernel in (record, replay):
-                    hits = run_trace(kernel, layout, rays, query, False)
+                run_trace(record, recording(*arrays, cells), rays, query, False)
+                taken = cells >= 0
+                offsets = np.concatenate([[0], np.cumsum(taken.sum(axis=1))]).astype(np.int64)
+                layout = recorded(*arrays, offsets, cells[taken])
+                del cells, taken
+                for kernel, lay in ((walk, arrays), (replay, layout)):
+                    hits = run_trace(kernel, lay, rays, query, False)
                     if not (
                         np.array_equal(hits.prim >= 0, reference.prim >= 0)
                         and np.array_equal(hits.t, reference.t)
                     ):
-                        raise AssertionError(f"{name} {kind}: the recorded walk's hits differ")
+                        raise AssertionError(f"{scene} {view} {kind}: the hits differ")
                 passes = [
                     lambda r=rays, q=query, lay=arrays, w=walk: run_trace(w, lay, r, q, False),
                     lambda r=rays, q=query, lay=layout: run_trace(replay, lay, r, q, False),
