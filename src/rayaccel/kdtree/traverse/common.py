@@ -174,10 +174,13 @@ def leaf_hits_py(
     empty leaf, triangle test and byte counters advanced by this leaf.
     """
     first, count = leaf_range(kd.node_i, node)
-    t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
-        kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
-        kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,
-    )  # fmt: skip
+    tested = 0
+    if count != 0:
+        # An empty leaf skips the call: most leaves a ray reaches are empty.
+        t_hit, best_prim, best_u, best_v, tested = intersect_leaf(
+            kd.tri, kd.tri_prim, first, first + count, okx, oky, okz,
+            kx, ky, kz, Sx, Sy, Sz, t_lo, t_hit, best_prim, best_u, best_v, stop_at_first,
+        )  # fmt: skip
     if with_stats:
         n_leaves += 1
         if count == 0:
