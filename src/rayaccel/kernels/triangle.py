@@ -106,16 +106,23 @@ def ray_triangle_py(tri, row, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, tmin, tmax)
     t, u, v : float32
         Distance and barycentrics of the hit (``(1-u-v)·A + u·B + v·C``).
     """
-    # Vertices relative to the ray origin, in the permuted frame.
-    Akx = tri[row, kx] - okx
-    Aky = tri[row, ky] - oky
-    Akz = tri[row, kz] - okz
-    Bkx = tri[row, 3 + kx] - okx
-    Bky = tri[row, 3 + ky] - oky
-    Bkz = tri[row, 3 + kz] - okz
-    Ckx = tri[row, 6 + kx] - okx
-    Cky = tri[row, 6 + ky] - oky
-    Ckz = tri[row, 6 + kz] - okz
+    # Vertices relative to the ray origin, in the permuted frame. Unsigned indices:
+    # numba then adds no wraparound of negative ones to the row's address.
+    i = np.uint64(row)
+    x = np.uint64(kx)
+    y = np.uint64(ky)
+    z = np.uint64(kz)
+    b = np.uint64(3)
+    c = np.uint64(6)
+    Akx = tri[i, x] - okx
+    Aky = tri[i, y] - oky
+    Akz = tri[i, z] - okz
+    Bkx = tri[i, b + x] - okx
+    Bky = tri[i, b + y] - oky
+    Bkz = tri[i, b + z] - okz
+    Ckx = tri[i, c + x] - okx
+    Cky = tri[i, c + y] - oky
+    Ckz = tri[i, c + z] - okz
     # Shear so the ray runs along +z.
     Ax = Akx - Sx * Akz
     Ay = Aky - Sy * Akz
