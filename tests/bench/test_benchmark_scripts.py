@@ -51,3 +51,17 @@ def test_bench_memory_reports_rayaccel_bytes(capsys, monkeypatch) -> None:
     assert "bvh2.packed" in record["layouts"]
     assert {"bvh2.pairs", "bvh2.wide8"} & set(record["layouts"])
     assert record["info_bytes"] >= sum(record["layouts"].values())
+
+
+def test_bound_irregular_map_replays_the_walks_cells(tmp_path: Path) -> None:
+    """The recorded-cells walk returns the traversal's hits (checked inside) and is timed."""
+    bound = _script("bound_irregular_map")
+    out = tmp_path / "bound.jsonl"
+    argv = ["--scenes", "cornell-box", "--rays", "primary", "--size", "16", "--repeats", "1",
+            "--output", str(out)]  # fmt: skip
+    assert bound.main(argv) == 0
+    (record,) = [json.loads(line) for line in out.read_text().splitlines()]
+    assert record["rays"] == "primary"
+    assert record["cells_per_ray"] > 0
+    assert set(record["seconds"]) == {"map_walk", "known_cells_walk", "bvh2.stack"}
+    assert all(s > 0 for s in record["seconds"].values())
