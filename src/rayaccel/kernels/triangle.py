@@ -112,17 +112,17 @@ def ray_triangle_py(tri, row, okx, oky, okz, kx, ky, kz, Sx, Sy, Sz, tmin, tmax)
     x = np.uint64(kx)
     y = np.uint64(ky)
     z = np.uint64(kz)
-    b = np.uint64(3)
-    c = np.uint64(6)
+    b_at = np.uint64(3)  # B's columns
+    c_at = np.uint64(6)  # C's columns
     Akx = tri[i, x] - okx
     Aky = tri[i, y] - oky
     Akz = tri[i, z] - okz
-    Bkx = tri[i, b + x] - okx
-    Bky = tri[i, b + y] - oky
-    Bkz = tri[i, b + z] - okz
-    Ckx = tri[i, c + x] - okx
-    Cky = tri[i, c + y] - oky
-    Ckz = tri[i, c + z] - okz
+    Bkx = tri[i, b_at + x] - okx
+    Bky = tri[i, b_at + y] - oky
+    Bkz = tri[i, b_at + z] - okz
+    Ckx = tri[i, c_at + x] - okx
+    Cky = tri[i, c_at + y] - oky
+    Ckz = tri[i, c_at + z] - okz
     # Shear so the ray runs along +z.
     Ax = Akx - Sx * Akz
     Ay = Aky - Sy * Akz
